@@ -1,0 +1,39 @@
+# Quick start: `make demo` (set up + run the main job on the built-in synthetic scene)
+# and `make test` (set up + run the whole test suite). Both work on a fresh machine.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+DEMO_OUT ?= out/demo
+
+.PHONY: setup demo test lint bench clean
+
+setup: $(STAMP)
+
+# open3d's Linux wheels link against libusb-1.0; install it where it is missing.
+$(STAMP): pyproject.toml
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+		echo "installing libusb-1.0 (needed by open3d)"; \
+		if [ "$$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi; \
+		$$SUDO apt-get update -qq && $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	@touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/planeslam demo --out $(DEMO_OUT)
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/ruff check planeslam factors eval tests
+	$(BIN)/ruff format --check planeslam factors eval tests
+
+bench: $(STAMP)
+	$(BIN)/planeslam bench frontend
+
+clean:
+	rm -rf $(VENV) out build *.egg-info

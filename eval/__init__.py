@@ -1,0 +1,1 @@
+"""Trajectory evaluation, reports and the benchmark harness (installed as `planeslam.eval`)."""

@@ -1,0 +1,1 @@
+"""GTSAM factors for plane and trihedral-corner landmarks (installed as `planeslam.factors`)."""

@@ -1,0 +1,31 @@
+"""One exception hierarchy for the whole library.
+
+The CLI turns any `PlaneSlamError` into a one-line message and exit code 2;
+anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class PlaneSlamError(Exception):
+    """Base class of every error planeslam raises on purpose."""
+
+
+class ConfigError(PlaneSlamError):
+    """A config file or value is missing, malformed or has unknown keys."""
+
+
+class DatasetFormatError(PlaneSlamError):
+    """A dataset folder, list file, image or trajectory file is not as expected."""
+
+
+class GeometryError(PlaneSlamError):
+    """Degenerate geometry: ill-conditioned plane triples, too few points, ..."""
+
+
+class AssociationError(PlaneSlamError):
+    """Data association failed (no pairs in a time window, no matching planes, ...)."""
+
+
+class EvaluationError(PlaneSlamError):
+    """Trajectory evaluation cannot be done (empty files, no associated poses, ...)."""

@@ -1,0 +1,106 @@
+"""Rigid-body and plane geometry shared by every stage.
+
+Poses are 4x4 homogeneous matrices named by their frames: `T_world_cam`
+maps camera-frame points to the world frame. Planes are (n, d) with
+n . x + d = 0 and |n| = 1.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from planeslam.errors import GeometryError
+
+
+def pose_from_quat(t_xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
+    """(3,) translation [m] + (4,) quaternion xyzw -> (4, 4) pose. Batched: (N, 3), (N, 4) -> (N, 4, 4)."""
+    t_xyz = np.asarray(t_xyz, dtype=np.float64)
+    quat_xyzw = np.asarray(quat_xyzw, dtype=np.float64)
+    batch = t_xyz.ndim == 2
+    t2, q2 = np.atleast_2d(t_xyz), np.atleast_2d(quat_xyzw)
+    T = np.tile(np.eye(4), (len(t2), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(q2).as_matrix()
+    T[:, :3, 3] = t2
+    return T if batch else T[0]
+
+
+def quat_from_pose(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 4) or (N, 4, 4) pose -> translation (.., 3) and quaternion xyzw (.., 4), qw >= 0."""
+    T = np.asarray(T, dtype=np.float64)
+    q = Rotation.from_matrix(T[..., :3, :3]).as_quat()
+    q = np.where(q[..., 3:4] < 0, -q, q)
+    return T[..., :3, 3].copy(), q
+
+
+def invert_pose(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (4, 4) or (N, 4, 4), without a general matrix inverse."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Ti = np.zeros_like(T)
+    Rt = np.swapaxes(R, -1, -2)
+    Ti[..., :3, :3] = Rt
+    Ti[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
+    Ti[..., 3, 3] = 1.0
+    return Ti
+
+
+def transform_points(T_b_a: np.ndarray, points_a: np.ndarray) -> np.ndarray:
+    """Map (N, 3) points from frame a to frame b with the (4, 4) pose T_b_a."""
+    return points_a @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+
+
+def transform_plane(T_b_a: np.ndarray, n_a: np.ndarray, d_a: float) -> tuple[np.ndarray, float]:
+    """Express plane (n_a, d_a) of frame a in frame b: n_b = R n_a, d_b = d_a - n_b . t."""
+    n_b = T_b_a[:3, :3] @ n_a
+    return n_b, float(d_a - n_b @ T_b_a[:3, 3])
+
+
+def orient_plane_toward(n: np.ndarray, d: float, viewpoint: np.ndarray) -> tuple[np.ndarray, float]:
+    """Flip (n, d) so the viewpoint lies on the positive side (n . viewpoint + d > 0).
+
+    In the camera frame the viewpoint is the origin, so this makes d > 0.
+    """
+    if float(n @ viewpoint + d) < 0:
+        return -n, -d
+    return n, d
+
+
+def angle_between(a: np.ndarray, b: np.ndarray) -> float:
+    """Angle [rad] between two vectors, robust near 0 and pi."""
+    a = a / np.linalg.norm(a)
+    b = b / np.linalg.norm(b)
+    return float(np.arctan2(np.linalg.norm(np.cross(a, b)), a @ b))
+
+
+def intersect_three_planes(
+    normals: np.ndarray, offsets: np.ndarray, min_sin: float = 0.2
+) -> np.ndarray:
+    """Point common to three planes, (3, 3) normals and (3,) offsets -> (3,).
+
+    Raises GeometryError when the triple is ill-conditioned: the absolute
+    determinant of the unit normals (the volume they span, 1 for orthogonal
+    planes) is below `min_sin`.
+    """
+    det = float(np.linalg.det(normals))
+    if abs(det) < min_sin:
+        raise GeometryError(f"planes nearly share a direction (|det| = {abs(det):.3f} < {min_sin})")
+    return np.linalg.solve(normals, -np.asarray(offsets, dtype=np.float64))
+
+
+def plane_line(
+    n1: np.ndarray, d1: float, n2: np.ndarray, d2: float, min_sin: float = 0.1
+) -> tuple[np.ndarray, np.ndarray]:
+    """Intersection line of two planes: (point (3,), unit direction (3,)).
+
+    The point is the one closest to the origin. Raises GeometryError when the
+    planes are nearly parallel (sin of their angle below `min_sin`).
+    """
+    direction = np.cross(n1, n2)
+    s = float(np.linalg.norm(direction))
+    if s < min_sin:
+        raise GeometryError(f"planes are nearly parallel (sin = {s:.3f} < {min_sin})")
+    direction = direction / s
+    A = np.stack([n1, n2, direction])
+    point = np.linalg.solve(A, np.array([-d1, -d2, 0.0]))
+    return point, direction
