@@ -1,0 +1,109 @@
+"""Config loading: presets, unknown keys, types, precedence of camera.yaml and --camera."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from planeslam.camera import CameraConfig
+from planeslam.config import (
+    PRESETS,
+    PlaneSlamConfig,
+    load_config,
+    resolve_config,
+    save_yaml,
+)
+from planeslam.errors import ConfigError
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_loads(preset: str) -> None:
+    cfg = load_config(preset)
+    assert isinstance(cfg, PlaneSlamConfig)
+    assert cfg.camera.width == 640 and cfg.camera.height == 480
+
+
+def test_sevenscenes_preset_has_its_depth_encoding() -> None:
+    cam = load_config("sevenscenes").camera
+    assert cam.depth_scale == 1000.0
+    assert set(cam.invalid_depth) == {0, 65535}
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (585.0, 585.0, 320.0, 240.0)
+
+
+def test_unknown_key_lists_valid_keys(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("camera:\n  fx: 500\n  focal: 3\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert str(path) in message and "focal" in message and "valid keys: fx, fy" in message
+    assert "\n" not in message
+
+
+def test_unknown_section_is_rejected(tmp_path: Path) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text("camrea: {}\n")
+    with pytest.raises(ConfigError, match="unknown key.*camrea.*valid keys: camera"):
+        load_config(path)
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("camera:\n  fx: fast\n", "camera.fx expects a number"),
+        ("camera:\n  width: 640.5\n", "camera.width expects a whole number"),
+        ("camera:\n  fx: -1\n", "fx must be > 0"),
+        ("dataset:\n  undistort: 1\n", "dataset.undistort expects true or false"),
+        ("segmentation:\n  method: ransac\n", "segmentation.method must be one of"),
+        ("camera: [1, 2]\n", "expected a mapping"),
+    ],
+)
+def test_bad_values_name_the_key(tmp_path: Path, text: str, expected: str) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=expected):
+        load_config(path)
+
+
+def test_unreadable_yaml_names_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "broken.yaml"
+    path.write_text("camera: {fx: [1, 2\n")
+    with pytest.raises(ConfigError, match="broken.yaml: not a readable YAML file"):
+        load_config(path)
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_saved_config_loads_back_equal(tmp_path: Path) -> None:
+    cfg = load_config("tum_fr1")
+    save_yaml(cfg, tmp_path / "config.yaml")
+    assert load_config(tmp_path / "config.yaml") == cfg
+
+
+def test_dataset_camera_yaml_overrides_config_and_cli_overrides_both(tmp_path: Path) -> None:
+    save_yaml(CameraConfig(fx=600.0, fy=601.0, cx=300.0, cy=200.0), tmp_path / "camera.yaml")
+    cfg = resolve_config(tmp_path, config="tum_fr1")
+    assert (cfg.camera.fx, cfg.camera.cy) == (600.0, 200.0)
+    cfg = resolve_config(tmp_path, config="tum_fr1", camera="500,501,310,230,1000")
+    assert (cfg.camera.fx, cfg.camera.fy, cfg.camera.cx, cfg.camera.cy) == (500, 501, 310, 230)
+    assert cfg.camera.depth_scale == 1000.0
+
+
+def test_preset_guessed_from_folder_name(tmp_path: Path) -> None:
+    folder = tmp_path / "rgbd_dataset_freiburg3_structure_texture_far"
+    folder.mkdir()
+    assert resolve_config(folder).camera.fx == load_config("tum_fr3").camera.fx
+
+
+@pytest.mark.parametrize("text", ["1,2,3", "a,b,c,d", "1,2,3,4,5,6"])
+def test_bad_camera_override(text: str) -> None:
+    with pytest.raises(ConfigError, match="fx,fy,cx,cy"):
+        CameraConfig().with_overrides(text)
+
+
+def test_unknown_preset() -> None:
+    from planeslam.config import preset_path
+
+    with pytest.raises(ConfigError, match="presets: tum_fr1"):
+        preset_path("kinect9")
