@@ -1,1 +1,34 @@
-"""GTSAM factors for plane and trihedral-corner landmarks (installed as `planeslam.factors`)."""
+"""GTSAM factors for plane and trihedral-corner landmarks (installed as `planeslam.factors`).
+
+Variables: camera poses T_world_cam (Pose3), plane landmarks in the world frame
+(OrientedPlane3, n . x + d = 0), corner landmarks in the world frame (Point3).
+Keys come from `LandmarkKeys`, whose symbol characters the caller chooses.
+
+Pattern to follow: give every pose an odometry factor (BetweenFactorPose3) or a
+prior. A pose observed only through planes needs three planes with linearly
+independent normals; with fewer, ISAM2 and Gauss-Newton raise "Indeterminate
+linear system" (a RuntimeError).
+
+Each factory returns a ready gtsam factor; the Python (CustomFactor) ones cost
+about an order of magnitude more to linearise than built-ins and hold the GIL,
+so `plane_factor` (built-in) is the default and `robust_plane_factor` the
+choice when outliers are expected.
+"""
+
+from .corner_observation import corner_factor
+from .keys import LandmarkKeys
+from .plane_observation import measured_plane, plane_factor, robust_plane_factor
+from .plane_structure import orthogonal_planes_factor, parallel_planes_factor, structural_factor
+from .point_on_plane import point_on_plane_factor
+
+__all__ = [
+    "LandmarkKeys",
+    "corner_factor",
+    "measured_plane",
+    "orthogonal_planes_factor",
+    "parallel_planes_factor",
+    "plane_factor",
+    "point_on_plane_factor",
+    "robust_plane_factor",
+    "structural_factor",
+]

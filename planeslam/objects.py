@@ -1,8 +1,44 @@
-"""Plane graph, trihedral angles, plane-based objects, classes and sizes (paper 4.2-4.3)."""
+"""Plane graph, trihedral angles, plane-based objects, classes and sizes (paper 4.2-4.3).
+
+`build_structure` runs the per-frame chain after segmentation:
+real intersections -> plane graph -> trihedral corners -> objects (corners
+sharing a graph edge, aggregated angle by angle) -> class by subgraph
+pattern -> physical size. Everything is in the camera frame, metres.
+
+Classification: each object's plane graph is matched against the pattern
+table (`DEFAULT_PATTERNS`, or the caller's) in order with
+`networkx.algorithms.isomorphism.GraphMatcher` (subgraph monomorphism with
+node and edge attribute constraints); the first pattern that matches gives
+the class, 'unknown' when none does. A plane may belong to several objects
+(the floor under a box and the floor of the room); planes in no corner are
+in no object.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import networkx as nx
+import numpy as np
+from networkx.algorithms import isomorphism
+
+from planeslam.errors import ConfigError
+from planeslam.intersections import Edge, IntersectionConfig, find_intersections
+from planeslam.plane_graph import (
+    Corner,
+    aggregate_corners,
+    build_plane_graph,
+    estimate_gravity,
+    find_corners,
+)
+from planeslam.segmentation import Segmentation
+
+logger = logging.getLogger(__name__)
+
+MAP_SCHEMA = "planeslam.map/1"
 
 
 @dataclass(frozen=True)
@@ -11,3 +47,382 @@ class ObjectConfig:
 
     gravity_up_cam: tuple[float, ...] = ()
     """Up direction (opposite to gravity) in the camera frame when known; empty: estimate it."""
+    gravity_max_tilt_deg: float = 45.0
+    """Estimating gravity: a plane whose normal is within this of the camera's -y (or +y)
+    axis can be the floor/table (or ceiling) that defines up; the largest such plane
+    wins [deg]. 45, not 30: the paper's robot camera looks about 33 deg down."""
+    orientation_tol_deg: float = 15.0
+    """A plane is horizontal (vertical) when its normal is within this of up
+    (of perpendicular to up), else slanted [deg]."""
+    corner_min_det: float = 0.2
+    """Three planes whose unit normals span a volume |det| below this give no corner."""
+    corner_tol_m: float = 0.05
+    """A corner point must lie within this of each of its three edges' segments [m]."""
+    axis_tol_deg: float = 20.0
+    """Sizes: edges within this of one direction measure the same dimension, and a new
+    dimension must be within this of orthogonal to the others [deg]."""
+
+    def __post_init__(self) -> None:
+        if len(self.gravity_up_cam) not in (0, 3):
+            raise ConfigError(
+                f"objects.gravity_up_cam must be empty or 3 numbers, got {self.gravity_up_cam!r}"
+            )
+        if len(self.gravity_up_cam) == 3 and not np.linalg.norm(self.gravity_up_cam) > 1e-9:
+            raise ConfigError(
+                f"objects.gravity_up_cam must be non-zero, got {self.gravity_up_cam!r}"
+            )
+        for name in ("gravity_max_tilt_deg", "orientation_tol_deg", "axis_tol_deg"):
+            if not 0 < float(getattr(self, name)) < 90:
+                raise ConfigError(
+                    f"objects.{name} must be in (0, 90) deg, got {getattr(self, name)!r}"
+                )
+        if not 0 < self.corner_min_det <= 1:
+            raise ConfigError(
+                f"objects.corner_min_det must be in (0, 1], got {self.corner_min_det!r}"
+            )
+        if not self.corner_tol_m > 0:
+            raise ConfigError(f"objects.corner_tol_m must be > 0, got {self.corner_tol_m!r}")
+
+
+@dataclass(frozen=True)
+class ObjectPattern:
+    """One class of the pattern table: a small plane graph that must occur in an object.
+
+    Attribute constraints map an attribute name to the required value, or to a
+    tuple of allowed values. Node attributes: orientation ('horizontal',
+    'vertical', 'slanted'), facing ('up', 'down', ''), area_m2, d. Edge
+    attributes: convex (bool), length_m, angle_rad.
+    """
+
+    cls: str
+    """Class name given to matching objects."""
+    nodes: tuple[Mapping[str, Any], ...]
+    """Required attributes of each pattern node (a plane)."""
+    edges: tuple[tuple[int, int, Mapping[str, Any]], ...]
+    """Pattern edges (node index, node index, required attributes)."""
+    all_edges: Mapping[str, Any] = field(default_factory=dict)
+    """Attributes every edge of the object's graph must have (e.g. all concave)."""
+    size_from: Literal["edges", "convex_edges", "extent"] = "edges"
+    """How the size is measured: 'edges' (longest edge per orthogonal direction, over
+    all the object's planes), 'convex_edges' (the same over the planes joined to the
+    matched pattern by convex edges: a box without the floor it stands on) or
+    'extent' (gravity-aligned bounding box of the object's edge end points)."""
+    description: str = ""
+
+    def graph(self) -> nx.Graph:
+        """The pattern as a networkx graph with the constraints as attributes."""
+        g = nx.Graph()
+        for k, attrs in enumerate(self.nodes):
+            g.add_node(k, **dict(attrs))
+        for a, b, attrs in self.edges:
+            g.add_edge(a, b, **dict(attrs))
+        return g
+
+
+_H = {"orientation": "horizontal"}
+_V = {"orientation": "vertical"}
+_CONVEX = {"convex": True}
+_CONCAVE = {"convex": False}
+
+DEFAULT_PATTERNS: tuple[ObjectPattern, ...] = (
+    ObjectPattern(
+        "box",
+        nodes=(_H, _V, _V),
+        edges=((0, 1, _CONVEX), (0, 2, _CONVEX), (1, 2, _CONVEX)),
+        size_from="convex_edges",
+        description="a convex corner of a horizontal top (or bottom) and two vertical sides",
+    ),
+    ObjectPattern(
+        "room",
+        nodes=(_H, _V, _V),
+        edges=((0, 1, _CONCAVE), (0, 2, _CONCAVE), (1, 2, _CONCAVE)),
+        all_edges=_CONCAVE,
+        description="a concave corner of a floor or ceiling and two walls, no convex edge",
+    ),
+    ObjectPattern(
+        "structure",
+        nodes=({}, {}, {}),
+        edges=((0, 1, _CONVEX), (1, 2, _CONCAVE), (0, 2, {})),
+        size_from="extent",
+        description="a corner with both convex and concave edges (panels, steps, shelves)",
+    ),
+)
+"""The pattern table, matched in this order (first match wins). Extend it by passing
+your own tuple to `build_structure` / `classify_object`, e.g.
+`(my_pattern,) + DEFAULT_PATTERNS`."""
+
+
+@dataclass(frozen=True)
+class PlaneObject:
+    """A plane-based object of one frame: corners that share edges, with class and size."""
+
+    id: int
+    """Index in `FrameStructure.objects`."""
+    cls: str
+    """Class from the pattern table ('box', 'room', 'structure', ...) or 'unknown'."""
+    planes: tuple[int, ...]
+    """Ids of its planes, increasing (a plane can be in several objects)."""
+    corners: tuple[int, ...]
+    """Indices of its corners in `FrameStructure.corners`."""
+    size_m: tuple[float, ...]
+    """Extents along up to three mutually orthogonal directions, largest first [m]."""
+
+
+@dataclass(frozen=True)
+class FrameStructure:
+    """Edges, plane graph, corners and objects of one frame, camera frame."""
+
+    edges: list[Edge]
+    graph: nx.Graph = field(repr=False)
+    corners: list[Corner]
+    objects: list[PlaneObject]
+    gravity_up_cam: np.ndarray
+    """(3,) unit up direction used for orientations, camera frame."""
+    gravity_source: str
+    """'config', 'plane <id>' (estimated from that plane) or the fallback used."""
+    reason: str = ""
+    """Why the result is empty or partial; '' when at least one object was found."""
+
+
+def _allowed(value: Any) -> tuple[Any, ...]:
+    return value if isinstance(value, tuple) else (value,)
+
+
+def _attrs_match(actual: Mapping[str, Any], required: Mapping[str, Any]) -> bool:
+    return all(k in actual and actual[k] in _allowed(v) for k, v in required.items())
+
+
+def match_pattern(object_graph: nx.Graph, pattern: ObjectPattern) -> dict[Any, int] | None:
+    """First embedding of `pattern` in `object_graph` (object plane id -> pattern node),
+    or None when the pattern does not occur or an edge violates `all_edges`."""
+    edge_attrs = [d for _, _, d in object_graph.edges(data=True)]
+    if any(not _attrs_match(d, pattern.all_edges) for d in edge_attrs):
+        return None
+    # Cheap necessary conditions before VF2: every constrained pattern node and
+    # edge has at least one candidate in the object.
+    node_attrs = [d for _, d in object_graph.nodes(data=True)]
+    if any(not any(_attrs_match(d, req) for d in node_attrs) for req in pattern.nodes if req):
+        return None
+    if any(not any(_attrs_match(d, req) for d in edge_attrs) for _, _, req in pattern.edges if req):
+        return None
+    matcher = isomorphism.GraphMatcher(
+        object_graph, pattern.graph(), node_match=_attrs_match, edge_match=_attrs_match
+    )
+    return next(iter(matcher.subgraph_monomorphisms_iter()), None)
+
+
+def classify_object(
+    object_graph: nx.Graph, patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS
+) -> tuple[str, ObjectPattern | None, dict[Any, int] | None]:
+    """Class of one object's plane graph: (class, matched pattern, embedding), first
+    match in table order; ('unknown', None, None) when no pattern occurs."""
+    for pattern in patterns:
+        mapping = match_pattern(object_graph, pattern)
+        if mapping is not None:
+            return pattern.cls, pattern, mapping
+    return "unknown", None, None
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def measure_size(
+    graph: nx.Graph, planes: set[int], object_planes: set[int], axis_tol_deg: float
+) -> tuple[float, ...]:
+    """Physical size [m] of the planes `planes` of an object, largest first.
+
+    Uses the edges between the object's planes that touch `planes`. Edge
+    directions are grouped greedily (longest edge first) into up to three
+    mutually orthogonal directions; a dimension is the longest edge along it
+    (a dimension seen only partly is as long as seen) or, when two parallel
+    planes of `planes` bound it (opposite walls, floor and ceiling), their
+    distance if that is larger.
+    """
+    cos_tol = float(np.cos(np.deg2rad(axis_tol_deg)))
+    sin_tol = float(np.sin(np.deg2rad(axis_tol_deg)))
+    measures: list[tuple[float, np.ndarray]] = []
+    for i, j, data in graph.edges(data=True):
+        if i in object_planes and j in object_planes and (i in planes or j in planes):
+            seg = data["segment"]
+            measures.append((float(data["length_m"]), _unit(seg[1] - seg[0])))
+    members = sorted(planes)
+    for a_idx, a in enumerate(members):
+        na, da = graph.nodes[a]["normal"], graph.nodes[a]["d"]
+        for b in members[a_idx + 1 :]:
+            nb, db = graph.nodes[b]["normal"], graph.nodes[b]["d"]
+            c = float(na @ nb)
+            if abs(c) >= cos_tol:
+                gap = abs(da + db) if c < 0 else abs(da - db)
+                measures.append((gap, _unit(np.asarray(na, dtype=np.float64))))
+    axes: list[np.ndarray] = []
+    dims: list[float] = []
+    for length, direction in sorted(measures, key=lambda m: -m[0]):
+        dots = [abs(float(direction @ ax)) for ax in axes]
+        best = int(np.argmax(dots)) if dots else -1
+        if dots and dots[best] >= cos_tol:
+            dims[best] = max(dims[best], length)
+        elif len(axes) < 3 and all(d <= sin_tol for d in dots):
+            axes.append(direction)
+            dims.append(length)
+    return tuple(sorted(dims, reverse=True))
+
+
+def measure_extent(graph: nx.Graph, object_planes: set[int], up: np.ndarray) -> tuple[float, ...]:
+    """Gravity-aligned bounding box [m] of the end points of the edges between
+    `object_planes`, largest first: height along unit `up`, and the two horizontal
+    extents along the principal directions of the end points' horizontal spread."""
+    ends = [
+        d["segment"]
+        for i, j, d in graph.edges(data=True)
+        if i in object_planes and j in object_planes
+    ]
+    if not ends:
+        return ()
+    pts = np.concatenate(ends)
+    height = float(np.ptp(pts @ up))
+    flat = pts - np.outer(pts @ up, up)
+    flat = flat - flat.mean(axis=0)
+    _, _, vt = np.linalg.svd(flat, full_matrices=False)
+    horizontal = np.ptp(flat @ vt[:2].T, axis=0)
+    return tuple(sorted([float(horizontal[0]), float(horizontal[1]), height], reverse=True))
+
+
+def _convex_part(graph: nx.Graph, seeds: Sequence[int], object_planes: set[int]) -> set[int]:
+    """Planes of the object joined to `seeds` through convex edges only."""
+    convex = nx.Graph()
+    convex.add_nodes_from(seeds)
+    convex.add_edges_from(
+        (i, j)
+        for i, j, d in graph.edges(data=True)
+        if d["convex"] and i in object_planes and j in object_planes
+    )
+    part: set[int] = set()
+    for s in seeds:
+        part |= nx.node_connected_component(convex, s)
+    return part
+
+
+def _all_parallel(segmentation: Segmentation, min_angle_deg: float) -> bool:
+    normals = np.stack([p.normal for p in segmentation.planes])
+    cos = np.abs(normals @ normals.T)
+    return bool(np.all(cos >= np.cos(np.deg2rad(min_angle_deg))))
+
+
+def build_structure(
+    segmentation: Segmentation,
+    intersection_config: IntersectionConfig | None = None,
+    object_config: ObjectConfig | None = None,
+    patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
+) -> FrameStructure:
+    """Edges, plane graph, corners and classified, sized objects of one frame.
+
+    Camera frame, metres. Degenerate input (no planes, one plane, only
+    parallel planes, no corner) gives an empty or partial result whose
+    `reason` says why; it never raises for such frames.
+    """
+    icfg = intersection_config or IntersectionConfig()
+    ocfg = object_config or ObjectConfig()
+    planes = segmentation.planes
+    if ocfg.gravity_up_cam:
+        up = _unit(np.asarray(ocfg.gravity_up_cam, dtype=np.float64))
+        source = "config"
+    else:
+        up, source = estimate_gravity(planes, ocfg.gravity_max_tilt_deg)
+    edges = find_intersections(segmentation, icfg) if len(planes) >= 2 else []
+    graph = build_plane_graph(planes, edges, up, ocfg.orientation_tol_deg)
+    corners = find_corners(graph, ocfg.corner_min_det, ocfg.corner_tol_m)
+    groups = aggregate_corners([c.planes for c in corners])
+    objects: list[PlaneObject] = []
+    for group in groups:
+        object_planes = {p for k in group for p in corners[k].planes}
+        sub = graph.subgraph(object_planes).copy()  # a plain graph iterates faster than a view
+        cls, pattern, mapping = classify_object(sub, patterns)
+        size_from = pattern.size_from if pattern is not None else "extent"
+        if size_from == "extent":
+            size = measure_extent(graph, object_planes, up)
+        else:
+            measured = object_planes
+            if size_from == "convex_edges" and mapping is not None:
+                measured = _convex_part(graph, list(mapping), object_planes)
+            size = measure_size(graph, measured, object_planes, ocfg.axis_tol_deg)
+        objects.append(
+            PlaneObject(
+                id=len(objects),
+                cls=cls,
+                planes=tuple(sorted(object_planes)),
+                corners=tuple(group),
+                size_m=size,
+            )
+        )
+    if not planes:
+        reason = "no planes in the frame"
+    elif len(planes) == 1:
+        reason = "only one plane: no intersections possible"
+    elif not edges:
+        if _all_parallel(segmentation, icfg.min_angle_deg):
+            reason = f"all {len(planes)} planes are nearly parallel: no intersections"
+        else:
+            reason = f"no real intersections among {len(planes)} planes"
+    elif not corners:
+        reason = f"{len(edges)} real intersections but no trihedral corner: no objects"
+    else:
+        reason = ""
+    return FrameStructure(
+        edges=edges,
+        graph=graph,
+        corners=corners,
+        objects=objects,
+        gravity_up_cam=up,
+        gravity_source=source,
+        reason=reason,
+    )
+
+
+def _floats(a: np.ndarray) -> list[Any]:
+    return np.asarray(a, dtype=np.float64).tolist()
+
+
+def to_map_dict(segmentation: Segmentation, structure: FrameStructure) -> dict[str, Any]:
+    """The shared map schema ('planeslam.map/1') of one frame, camera frame, plain JSON types.
+
+    {"schema", "planes": [{"id", "normal", "d", "area_m2", "outline"}],
+    "edges": [{"planes", "length_m", "segment", "convex"}], "corners":
+    [{"planes", "point"}], "objects": [{"id", "class", "planes", "size_m"}]};
+    size_m largest first.
+    """
+    return {
+        "schema": MAP_SCHEMA,
+        "planes": [
+            {
+                "id": int(p.id),
+                "normal": _floats(p.normal),
+                "d": float(p.d),
+                "area_m2": float(p.area_m2),
+                "outline": _floats(p.outline),
+            }
+            for p in segmentation.planes
+        ],
+        "edges": [
+            {
+                "planes": [int(e.planes[0]), int(e.planes[1])],
+                "length_m": float(e.length_m),
+                "segment": _floats(e.segment),
+                "convex": bool(e.convex),
+            }
+            for e in structure.edges
+        ],
+        "corners": [
+            {"planes": [int(k) for k in c.planes], "point": _floats(c.point)}
+            for c in structure.corners
+        ],
+        "objects": [
+            {
+                "id": int(o.id),
+                "class": str(o.cls),
+                "planes": [int(k) for k in o.planes],
+                "size_m": [float(s) for s in sorted(o.size_m, reverse=True)],
+            }
+            for o in structure.objects
+        ],
+    }

@@ -1,0 +1,129 @@
+"""Run metrics (speed, memory, map size) and the metrics.json file."""
+
+from __future__ import annotations
+
+import json
+import logging
+import resource
+import sys
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from planeslam.errors import EvaluationError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RunMetrics:
+    """What one run cost: the metrics.json keys, in this order."""
+
+    frames: int
+    """Frames processed."""
+    fps: float
+    """Frames processed per wall-clock second of processing (start-up excluded)."""
+    frame_ms_median: float
+    """Median wall-clock time of one frame [ms]."""
+    stage_ms: dict[str, float] = field(default_factory=dict)
+    """Stage name -> median time per frame [ms]."""
+    peak_rss_mb: float = 0.0
+    """Peak resident set size of the process [MiB]."""
+    map_bytes: int = 0
+    """Size of the serialised high-level map [bytes]."""
+    pointcloud_bytes: int = 0
+    """Size of the point cloud the map stands in for [bytes]."""
+    memory_ratio: float | None = None
+    """pointcloud_bytes / map_bytes (the paper's 'about 60x less memory'); None without a map."""
+    lost_frames: int = 0
+    """Frames whose pose could not be estimated (tracking lost, registration failed)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far [MiB] (getrusage; kB on Linux,
+    bytes on macOS)."""
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    per_mb = 1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0
+    return float(peak) / per_mb
+
+
+def stage_medians(frame_timings: Sequence[Mapping[str, float]]) -> dict[str, float]:
+    """Per-frame {stage: ms} dicts -> {stage: median ms over the frames that ran it},
+    stages in first-seen order."""
+    samples: dict[str, list[float]] = {}
+    for timing in frame_timings:
+        for stage, ms in timing.items():
+            samples.setdefault(stage, []).append(float(ms))
+    return {stage: float(np.median(values)) for stage, values in samples.items()}
+
+
+def memory_ratio(map_bytes: int, pointcloud_bytes: int) -> float | None:
+    """pointcloud_bytes / map_bytes, None when there is no map (map_bytes == 0)."""
+    if map_bytes < 0 or pointcloud_bytes < 0:
+        raise EvaluationError(
+            f"byte counts must be >= 0, got map {map_bytes}, point cloud {pointcloud_bytes}"
+        )
+    return float(pointcloud_bytes) / float(map_bytes) if map_bytes > 0 else None
+
+
+def run_metrics(
+    frames: int,
+    seconds: float,
+    frame_timings: Sequence[Mapping[str, float]] = (),
+    frame_ms: Sequence[float] | None = None,
+    map_bytes: int = 0,
+    pointcloud_bytes: int = 0,
+    lost_frames: int = 0,
+) -> RunMetrics:
+    """Build RunMetrics from a run's counts and timings.
+
+    `seconds` is the wall-clock processing time (start-up excluded); `frame_timings` holds one
+    {stage: ms} dict per frame; `frame_ms` the total ms per frame (default: the sum of each
+    frame's stages, else seconds / frames). Peak RSS is read from this process.
+    """
+    if frames < 0 or not seconds >= 0:
+        raise EvaluationError(f"need frames >= 0 and seconds >= 0, got {frames} and {seconds}")
+    if frame_ms is None:
+        frame_ms = [float(sum(t.values())) for t in frame_timings]
+    if len(frame_ms):
+        median_ms = float(np.median(np.asarray(frame_ms, dtype=np.float64)))
+    else:
+        median_ms = 1000.0 * seconds / frames if frames else 0.0
+    return RunMetrics(
+        frames=int(frames),
+        fps=float(frames) / seconds if seconds > 0 else 0.0,
+        frame_ms_median=median_ms,
+        stage_ms=stage_medians(frame_timings),
+        peak_rss_mb=peak_rss_mb(),
+        map_bytes=int(map_bytes),
+        pointcloud_bytes=int(pointcloud_bytes),
+        memory_ratio=memory_ratio(map_bytes, pointcloud_bytes),
+        lost_frames=int(lost_frames),
+    )
+
+
+def write_metrics(metrics: RunMetrics, path: str | Path) -> Path:
+    """Write metrics.json (keys of RunMetrics); returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(metrics.to_dict(), indent=2) + "\n", encoding="utf-8")
+    log.debug("wrote %s", path)
+    return path
+
+
+def read_metrics(path: str | Path) -> RunMetrics:
+    """Read a metrics.json written by `write_metrics`."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        return RunMetrics(**data)
+    except FileNotFoundError:
+        raise EvaluationError(f"{path}: metrics file not found") from None
+    except (json.JSONDecodeError, TypeError) as exc:
+        raise EvaluationError(f"{path}: not a metrics.json ({exc})") from None

@@ -1,0 +1,59 @@
+"""Organised point cloud from a depth image (paper step 1).
+
+The cloud keeps the image layout: `points[v, u]` is the camera-frame point of
+pixel (u, v) in metres (x right, y down, z forward). Invalid pixels (depth 0,
+negative, NaN, inf or beyond `max_depth_m`) are all-zero points, so the cloud
+is NaN-free and `points[..., 2] > 0` is exactly the validity mask
+(`valid_mask` returns it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planeslam.camera import PixelRays
+from planeslam.errors import GeometryError
+
+_RAYS32_CACHE: dict[int, tuple[PixelRays, np.ndarray]] = {}
+
+
+def rays_float32(rays: PixelRays) -> np.ndarray:
+    """(H, W, 3) float32 copy of `rays.rays`, made once per PixelRays object and cached."""
+    hit = _RAYS32_CACHE.get(id(rays))
+    if hit is not None and hit[0] is rays:
+        return hit[1]
+    if len(_RAYS32_CACHE) >= 8:
+        _RAYS32_CACHE.clear()
+    value = np.ascontiguousarray(rays.rays, dtype=np.float32)
+    _RAYS32_CACHE[id(rays)] = (rays, value)  # holding `rays` keeps its id unique
+    return value
+
+
+def check_depth_shape(depth_m: np.ndarray, shape: tuple[int, int]) -> None:
+    """Raise GeometryError unless `depth_m` is a 2-D image of `shape` (H, W)."""
+    if np.ndim(depth_m) != 2 or tuple(np.shape(depth_m)) != tuple(shape):
+        raise GeometryError(
+            f"depth image has shape {tuple(np.shape(depth_m))}, the camera rays are "
+            f"{shape[0]}x{shape[1]} (H, W): use the camera config of this sensor"
+        )
+
+
+def valid_mask(depth_m: np.ndarray, max_depth_m: float = np.inf) -> np.ndarray:
+    """(H, W) bool: depth is finite, > 0 and <= max_depth_m [m] (NaN compares False)."""
+    depth = np.asarray(depth_m)
+    return (depth > 0) & (depth <= max_depth_m)
+
+
+def organized_cloud(
+    depth_m: np.ndarray, rays: PixelRays, max_depth_m: float = np.inf
+) -> np.ndarray:
+    """Back-project a depth image: (H, W) metres -> (H, W, 3) float32 camera-frame points [m].
+
+    Invalid pixels (see module docstring) become (0, 0, 0). `rays` comes from
+    `PixelRays.for_camera(camera)`, computed once per camera.
+    """
+    ray32 = rays_float32(rays)
+    check_depth_shape(depth_m, ray32.shape[:2])
+    depth = np.asarray(depth_m, dtype=np.float32)
+    z = np.where(valid_mask(depth, max_depth_m), depth, np.float32(0.0))
+    return z[..., None] * ray32
