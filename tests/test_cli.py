@@ -1,0 +1,42 @@
+"""The command line: help for every sub-command, one-line errors with exit code 2, the demo."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from planeslam.cli import main
+
+COMMANDS = ("synth", "demo", "eval")
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_help(command: str, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        main([command, "--help"])
+    assert info.value.code == 0
+    assert command in capsys.readouterr().out
+
+
+def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "planeslam.cli", "eval", str(tmp_path / "gt.txt"), "x.txt"],
+        capture_output=True, text=True,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().count("\n") == 0
+    assert "gt.txt: trajectory file not found" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_demo_runs_and_finds_the_box(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["-q", "demo", "--out", str(tmp_path)]) == 0
+    assert "box found in" in capsys.readouterr().out
+    records = [json.loads(line) for line in (tmp_path / "frames.jsonl").read_text().splitlines()]
+    assert len(records) == 24
+    assert all(r["schema"] == "planeslam.map/1" for r in records)
+    assert sum(any(o["class"] == "box" for o in r["objects"]) for r in records) >= 4
