@@ -8,6 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import shared_sequence
+
+from planeslam.camera import CameraConfig
+from planeslam.config import resolve_config
+from planeslam.dataset import DatasetConfig, Frame, TumDataset
+from planeslam.errors import ConfigError, EvaluationError
 from planeslam.eval.baselines import registration_ok, run_open3d_odometry
 from planeslam.eval.suite import (
     SequenceSpec,
@@ -20,11 +25,6 @@ from planeslam.eval.suite import (
     write_csv,
 )
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
-
-from planeslam.camera import CameraConfig
-from planeslam.config import resolve_config
-from planeslam.dataset import DatasetConfig, Frame, TumDataset
-from planeslam.errors import ConfigError, EvaluationError
 from planeslam.trajectory import Trajectory
 
 

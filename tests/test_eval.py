@@ -10,6 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
+
+from planeslam.errors import EvaluationError
 from planeslam.eval.metrics import (
     RunMetrics,
     memory_ratio,
@@ -31,9 +34,6 @@ from planeslam.eval.trajectory_metrics import (
     evaluate_trajectory,
     format_table,
 )
-from scipy.spatial.transform import Rotation
-
-from planeslam.errors import EvaluationError
 from planeslam.trajectory import Trajectory, write_tum
 
 BIN = Path(sys.executable).parent

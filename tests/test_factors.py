@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative11
 from helpers import assert_pose_close
+
+from planeslam.errors import ConfigError, GeometryError
 from planeslam.factors import (
     LandmarkKeys,
     corner_factor,
@@ -19,8 +21,6 @@ from planeslam.factors import (
     robust_plane_factor,
     structural_factor,
 )
-
-from planeslam.errors import ConfigError, GeometryError
 
 KEYS = LandmarkKeys()
 X0, P0, P1, C0 = KEYS.pose(0), KEYS.plane(0), KEYS.plane(1), KEYS.corner(0)
