@@ -99,7 +99,8 @@ def mean_object_size_error(errors: Sequence[Mapping[str, Any]]) -> float | None:
     return float(np.mean(values)) if values else None
 
 
-def _read_json(path: Path, what: str) -> Any:
+def read_json(path: Path, what: str = "file") -> Any:
+    """Parse a JSON file, or raise an EvaluationError naming it and what it should be."""
     try:
         return json.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -112,8 +113,8 @@ def object_size_errors_from_files(
     map_json: str | Path, truth_json: str | Path
 ) -> list[dict[str, Any]]:
     """`object_size_errors` for a map JSON file (with an 'objects' list) and a truth.json."""
-    map_data = _read_json(Path(map_json), "map file")
+    map_data = read_json(Path(map_json), "map file")
     objects = map_data.get("objects") if isinstance(map_data, Mapping) else None
     if not isinstance(objects, list):
         raise EvaluationError(f"{map_json}: expected a JSON object with an 'objects' list")
-    return object_size_errors(objects, _read_json(Path(truth_json), "truth file"))
+    return object_size_errors(objects, read_json(Path(truth_json), "truth file"))

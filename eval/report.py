@@ -12,7 +12,7 @@ from typing import Any
 
 from planeslam.errors import EvaluationError
 
-from .object_sizes import object_size_errors_from_files
+from .object_sizes import object_size_errors_from_files, read_json
 from .plots import plot_ate_over_time, plot_trajectories
 from .trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
 
@@ -118,10 +118,7 @@ def _object_table(errors: list[dict[str, Any]]) -> str:
 
 
 def _read_json(path: Path) -> dict[str, Any]:
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise EvaluationError(f"{path}: not a readable JSON file ({exc})") from None
+    data = read_json(path)
     if not isinstance(data, dict):
         raise EvaluationError(f"{path}: expected a JSON object")
     return data

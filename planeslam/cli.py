@@ -17,21 +17,6 @@ from planeslam.errors import PlaneSlamError
 log = logging.getLogger("planeslam")
 
 
-def _add_dataset_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--config",
-        metavar="C",
-        help="preset (tum_fr1, tum_fr2, tum_fr3, sevenscenes, synthetic) or YAML file; "
-        "default: guessed from the dataset folder name",
-    )
-    parser.add_argument(
-        "--camera",
-        metavar="FX,FY,CX,CY[,SCALE]",
-        help="override intrinsics [pixels] and depth scale [PNG units per metre]; "
-        "beats the config and the dataset's camera.yaml",
-    )
-
-
 def _add_synth(sub: argparse._SubParsersAction) -> None:
     from planeslam.synth import SCENES
 
