@@ -8,11 +8,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 
-from planeslam.camera import CameraConfig
-from planeslam.dataset import Frame, TumDataset
+from planeslam.dataset import TumDataset
 from planeslam.errors import EvaluationError
+from planeslam.odometry import RgbdOdometry
 from planeslam.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
@@ -32,48 +31,6 @@ class BaselineResult:
     """Frames whose registration failed (their motion was extrapolated)."""
     frame_timings: list[dict[str, float]] = field(default_factory=list, repr=False)
     """Per frame {stage: ms}: 'read', 'rgbd_image', 'odometry'."""
-
-
-def open3d_intrinsic(camera: CameraConfig) -> o3d.camera.PinholeCameraIntrinsic:
-    """Open3D pinhole intrinsics of our camera (distortion is not modelled by Open3D)."""
-    return o3d.camera.PinholeCameraIntrinsic(
-        camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy
-    )
-
-
-def rgbd_image(frame: Frame, depth_trunc_m: float) -> o3d.geometry.RGBDImage:
-    """Open3D RGBDImage (intensity + depth in metres, 0 beyond `depth_trunc_m`) of a Frame."""
-    color = o3d.geometry.Image(np.ascontiguousarray(frame.rgb, dtype=np.uint8))
-    depth = o3d.geometry.Image(np.ascontiguousarray(frame.depth_m, dtype=np.float32))
-    return o3d.geometry.RGBDImage.create_from_color_and_depth(
-        color, depth, depth_scale=1.0, depth_trunc=depth_trunc_m, convert_rgb_to_intensity=True
-    )
-
-
-def initial_pose(dataset: TumDataset, timestamp: float) -> np.ndarray:
-    """(4, 4) ground-truth T_world_cam nearest to `timestamp` within the dataset's association
-    window, else the identity."""
-    gt = dataset.groundtruth
-    if gt is None or len(gt) == 0:
-        return np.eye(4)
-    k = int(np.argmin(np.abs(gt.timestamps - timestamp)))
-    if abs(gt.timestamps[k] - timestamp) > dataset.config.max_time_difference_s:
-        log.info("no ground-truth pose near %.3f s: the baseline starts at the identity", timestamp)
-        return np.eye(4)
-    return np.array(gt.T_world_cam[k], dtype=np.float64)
-
-
-def registration_ok(success: bool, T: np.ndarray, information: np.ndarray) -> bool:
-    """Whether an Open3D odometry result can be used.
-
-    Open3D reports success with an identity or NaN motion and a zero (6, 6) information
-    matrix when no pixel has a correspondence (blank depth), so its flag alone is not enough:
-    also require a finite motion and an information matrix of full rank.
-    """
-    if not success or not np.all(np.isfinite(T)) or not np.all(np.isfinite(information)):
-        return False
-    eig = np.linalg.eigvalsh(0.5 * (information + information.T))
-    return bool(eig[-1] > 0 and eig[0] > 1e-9 * eig[-1])
 
 
 def run_open3d_odometry(
@@ -98,40 +55,34 @@ def run_open3d_odometry(
     if max_frames is not None and max_frames < 1:
         raise EvaluationError(f"max_frames must be >= 1, got {max_frames}")
     indices = list(range(0, len(dataset), every))[:max_frames]
-    intrinsic = open3d_intrinsic(dataset.camera)
-    option = o3d.pipelines.odometry.OdometryOption(
-        depth_diff_max=depth_diff_max_m, depth_min=0.0, depth_max=depth_trunc_m
-    )
-    jacobian = o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm()
+    odometry = RgbdOdometry(dataset.camera, depth_trunc_m, depth_diff_max_m)
 
     stamps: list[float] = []
     poses: list[np.ndarray] = []
     timings: list[dict[str, float]] = []
     lost = 0
-    previous: o3d.geometry.RGBDImage | None = None
+    previous = None
     T_prev_cur_last = np.eye(4)
     start = time.perf_counter()
     for index in indices:
         t0 = time.perf_counter()
         frame = dataset[index]
         t1 = time.perf_counter()
-        current = rgbd_image(frame, depth_trunc_m)
+        current = odometry.image(frame.rgb, frame.depth_m)
         t2 = time.perf_counter()
         if previous is None:
-            T_world_cam = initial_pose(dataset, frame.timestamp)
+            T_world_cam = dataset.groundtruth_pose(frame.timestamp)
         else:
             # source = current, target = previous: the result maps current-camera points
             # into the previous camera frame, i.e. T_prev_cur.
-            ok, T_prev_cur, info = o3d.pipelines.odometry.compute_rgbd_odometry(
-                current, previous, intrinsic, np.eye(4), jacobian, option
-            )
-            if not registration_ok(ok, T_prev_cur, info):
+            T_prev_cur = odometry.motion(current, previous)
+            if T_prev_cur is None:
                 lost += 1
                 log.warning(
                     "frame %d (%.3f s): odometry failed, extrapolating", index, frame.timestamp
                 )
                 T_prev_cur = T_prev_cur_last
-            T_prev_cur_last = np.asarray(T_prev_cur, dtype=np.float64)
+            T_prev_cur_last = T_prev_cur
             T_world_cam = poses[-1] @ T_prev_cur_last
         t3 = time.perf_counter()
         previous = current

@@ -40,6 +40,12 @@ class RunMetrics:
     """pointcloud_bytes / map_bytes (the paper's 'about 60x less memory'); None without a map."""
     lost_frames: int = 0
     """Frames whose pose could not be estimated (tracking lost, registration failed)."""
+    keyframes: int = 0
+    """Frames that went into the map / the backend's graph (0 for methods without a map)."""
+    tracking_paths: dict[str, int] = field(default_factory=dict)
+    """How each frame's pose was found (tracking path -> frames), for methods that say."""
+    map_bytes_breakdown: dict[str, int] = field(default_factory=dict)
+    """map_bytes by part (planes, edges, corners, objects, sparse_cloud)."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -80,6 +86,9 @@ def run_metrics(
     map_bytes: int = 0,
     pointcloud_bytes: int = 0,
     lost_frames: int = 0,
+    keyframes: int = 0,
+    tracking_paths: Mapping[str, int] | None = None,
+    map_bytes_breakdown: Mapping[str, int] | None = None,
 ) -> RunMetrics:
     """Build RunMetrics from a run's counts and timings.
 
@@ -105,6 +114,9 @@ def run_metrics(
         pointcloud_bytes=int(pointcloud_bytes),
         memory_ratio=memory_ratio(map_bytes, pointcloud_bytes),
         lost_frames=int(lost_frames),
+        keyframes=int(keyframes),
+        tracking_paths=dict(tracking_paths or {}),
+        map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
     )
 
 

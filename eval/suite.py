@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import csv
+import dataclasses
 import json
 import logging
 import multiprocessing
@@ -35,12 +36,25 @@ log = logging.getLogger(__name__)
 class SequenceSpec:
     """One dataset of the suite."""
 
-    path: str
+    path: str = ""
     """Dataset folder (TUM layout); relative paths are relative to the suite file."""
+    scene: str | None = None
+    """Instead of `path`: a synthetic scene (`planeslam synth`), rendered once into the
+    suite's output folder (data/<scene>) with seed 0."""
     config: str | None = None
     """Preset name or YAML file; default: guessed from the folder name."""
     max_frames: int | None = None
     """Process at most this many frames (all when unset)."""
+    every: int = 1
+    """Use every `every`-th frame (keyframes far apart)."""
+    optional: bool = False
+    """Skip the sequence (with a note) when its folder does not exist, e.g. shared data."""
+
+    @property
+    def name(self) -> str:
+        """Row label: the folder name (or scene), with '/every<K>' when subsampled."""
+        base = self.scene or Path(self.path).name
+        return base if self.every == 1 else f"{base}/every{self.every}"
 
 
 @dataclass(frozen=True)
@@ -90,7 +104,7 @@ def register_method(name: str) -> Callable[[Method], Method]:
 def _open3d_odometry(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
     from .baselines import run_open3d_odometry
 
-    result = run_open3d_odometry(dataset, max_frames=spec.max_frames)
+    result = run_open3d_odometry(dataset, max_frames=spec.max_frames, every=spec.every)
     metrics = run_metrics(
         frames=result.frames,
         seconds=result.seconds,
@@ -98,6 +112,39 @@ def _open3d_odometry(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
         lost_frames=result.lost_frames,
     )
     return MethodResult(trajectory=result.trajectory, metrics=metrics)
+
+
+def _slam_method(backend: str) -> Method:
+    def run(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
+        from planeslam.config import resolve_config
+        from planeslam.slam import SLAM, run_frames
+
+        config = resolve_config(dataset.root, spec.config)
+        indices = list(range(0, len(dataset), spec.every))[: spec.max_frames]
+        slam = SLAM(
+            config, backend, T_world_first=dataset.groundtruth_pose(dataset.timestamps[indices[0]])
+        )
+        summary = run_frames(slam, dataset, indices)
+        breakdown = slam.map.memory_bytes()
+        metrics = run_metrics(
+            frames=summary.frames,
+            seconds=summary.seconds,
+            frame_timings=summary.frame_timings,
+            map_bytes=breakdown["total"],
+            pointcloud_bytes=slam.pointcloud_bytes,
+            lost_frames=summary.lost_frames,
+            keyframes=summary.keyframes,
+            tracking_paths=summary.paths,
+            map_bytes_breakdown={k: v for k, v in breakdown.items() if k != "total"},
+        )
+        objects = slam.map.to_dict()["objects"]
+        return MethodResult(trajectory=slam.trajectory(), metrics=metrics, objects=objects)
+
+    return run
+
+
+register_method("merge")(_slam_method("merge"))
+register_method("isam2")(_slam_method("isam2"))
 
 
 @dataclass(frozen=True)
@@ -140,7 +187,89 @@ def load_suite(path: str | Path) -> tuple[SuiteConfig, Path]:
         )
     if not config.sequences:
         raise ConfigError(f"{path}: 'sequences' is empty (expected a list of {{path: ...}})")
+    for k, spec in enumerate(config.sequences):
+        if bool(spec.path) == (spec.scene is not None):
+            raise ConfigError(f"{path}: sequences[{k}] needs exactly one of 'path' or 'scene'")
+        if spec.every < 1:
+            raise ConfigError(f"{path}: sequences[{k}].every must be >= 1, got {spec.every}")
     return config, path.parent
+
+
+DEFAULT_SUITE = "suite.yaml"
+"""The bundled default suite (in `planeslam.configs`); data paths are relative to the
+current directory, i.e. the repository root."""
+
+
+def run_suite_command(
+    suite: str | Path | None,
+    out_dir: str | Path,
+    jobs: int | None = None,
+    progress: bool = False,
+) -> str:
+    """`planeslam bench suite [SUITE.yaml] [--jobs N]`: render the synthetic scenes, run the
+    suite with a progress bar, write suite.md and suite.csv into out_dir; returns the table.
+
+    Without SUITE the bundled default suite runs from the current directory; its optional
+    sequences (../shared/data) are skipped with a note when absent.
+    """
+    if suite is None:
+        from importlib import resources
+
+        path = Path(str(resources.files("planeslam.configs") / DEFAULT_SUITE))
+        config, _ = load_suite(path)
+        base_dir = Path.cwd()
+    else:
+        config, base_dir = load_suite(suite)
+    present = []
+    for spec in config.sequences:
+        if spec.optional and spec.scene is None and not (base_dir / spec.path).is_dir():
+            log.warning("skipping %s: %s not found", spec.name, base_dir / spec.path)
+        else:
+            present.append(spec)
+    config = dataclasses.replace(config, sequences=tuple(present), jobs=jobs or config.jobs)
+    out = Path(out_dir)
+    render_scenes(config, out)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(config.sequences) * len(config.methods), desc="suite", unit="run")
+
+    def on_row(row: SuiteRow) -> None:
+        if bar is not None:
+            status = "failed" if row.error else f"ATE {row.ate_rmse_m or 0:.3f} m"
+            bar.set_postfix_str(f"{row.sequence} {row.method}: {status}", refresh=False)
+            bar.update(1)
+
+    try:
+        result = run_suite(config, base_dir, out, on_row)
+    finally:
+        if bar is not None:
+            bar.close()
+    table = to_markdown(result)
+    (out / "suite.md").write_text(table, encoding="utf-8")
+    write_csv(result, out / "suite.csv")
+    return table + f"\nwritten: {out / 'suite.md'}, {out / 'suite.csv'}"
+
+
+def sequence_root(spec: SequenceSpec, base_dir: str | Path, out_dir: str | Path | None) -> Path:
+    """The dataset folder of a sequence: its path, or data/<scene> under the output folder."""
+    if spec.scene is not None:
+        return Path(out_dir or ".") / "data" / spec.scene
+    return Path(base_dir) / spec.path
+
+
+def render_scenes(config: SuiteConfig, out_dir: str | Path) -> None:
+    """Render the synthetic scenes of a suite into out_dir/data once (seed 0), before the
+    workers start, so that no two workers render the same scene."""
+    from planeslam.synth import synthesize
+
+    for spec in config.sequences:
+        if spec.scene is not None:
+            root = sequence_root(spec, ".", out_dir)
+            if not (root / "truth.json").is_file():
+                log.info("rendering %s into %s", spec.scene, root)
+                synthesize(spec.scene, root, seed=0)
 
 
 def run_job(
@@ -153,7 +282,7 @@ def run_job(
 ) -> SuiteRow:
     """Run one method on one sequence and evaluate it; any exception becomes `error`."""
     start = time.perf_counter()
-    root = Path(base_dir) / spec.path
+    root = sequence_root(spec, base_dir, out_dir)
     try:
         cfg = resolve_config(root, spec.config)
         dataset = TumDataset(root, cfg.camera, cfg.dataset)
@@ -165,7 +294,7 @@ def run_job(
             "lost_frames": result.metrics.lost_frames,
         }
         if out_dir is not None:
-            run_dir = Path(out_dir) / root.name / method
+            run_dir = Path(out_dir) / spec.name.replace("/", "_") / method
             write_tum(run_dir / "trajectory.txt", result.trajectory)
             write_metrics(result.metrics, run_dir / "metrics.json")
         if dataset.groundtruth is None:
@@ -185,13 +314,13 @@ def run_job(
                 object_size_errors(result.objects, truth)
             )
         return SuiteRow(
-            sequence=root.name, method=method, seconds=time.perf_counter() - start, **row
+            sequence=spec.name, method=method, seconds=time.perf_counter() - start, **row
         )
     except Exception as exc:  # noqa: BLE001 - a failing job is reported, the suite goes on
         message = str(exc).splitlines()[0] if str(exc) else ""
-        log.warning("%s / %s failed: %s: %s", root.name, method, type(exc).__name__, message)
+        log.warning("%s / %s failed: %s: %s", spec.name, method, type(exc).__name__, message)
         return SuiteRow(
-            sequence=root.name,
+            sequence=spec.name,
             method=method,
             seconds=time.perf_counter() - start,
             error=f"{type(exc).__name__}: {message}",
@@ -242,7 +371,7 @@ def run_suite(
                 except Exception as exc:  # noqa: BLE001 - a crashed worker is one failed row
                     spec, method = tasks[k]
                     rows[k] = SuiteRow(
-                        sequence=Path(spec.path).name,
+                        sequence=spec.name,
                         method=method,
                         error=f"{type(exc).__name__}: worker failed ({exc})",
                     )

@@ -32,3 +32,7 @@ __all__ = [
     "robust_plane_factor",
     "structural_factor",
 ]
+
+from .landmarks import AddedFactors, LandmarkConfig, PlaneLandmarks  # noqa: E402
+
+__all__ += ["AddedFactors", "LandmarkConfig", "PlaneLandmarks"]

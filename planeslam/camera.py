@@ -64,7 +64,7 @@ class CameraConfig:
             raise ConfigError(
                 f"--camera expects 'fx,fy,cx,cy[,depth_scale]' (4 or 5 numbers), got {text!r}"
             )
-        changes = dict(zip(("fx", "fy", "cx", "cy", "depth_scale"), values))
+        changes = dict(zip(("fx", "fy", "cx", "cy", "depth_scale"), values, strict=False))
         return replace(self, **changes)  # type: ignore[arg-type]
 
 

@@ -89,7 +89,12 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     from planeslam.eval.trajectory_metrics import format_table
 
     run = evaluate_to_folder(
-        args.groundtruth, args.estimate, args.out, args.max_dt, args.rpe_delta, args.truth,
+        args.groundtruth,
+        args.estimate,
+        args.out,
+        args.max_dt,
+        args.rpe_delta,
+        args.truth,
         args.map,
     )
     print(format_table(run.evaluation))
@@ -97,10 +102,147 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_dataset_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
+    p.add_argument("--camera", default=None, help="intrinsics override 'fx,fy,cx,cy[,depth_scale]'")
+
+
+def _add_run(sub: argparse._SubParsersAction) -> None:
+    from planeslam.slam import BACKENDS
+
+    p = sub.add_parser(
+        "run",
+        help="full SLAM on a TUM-layout sequence (trajectory, map, metrics, evaluation)",
+        description="Run SLAM on a dataset folder (TUM layout). Writes trajectory.txt (row by "
+        "row as frames are tracked, final poses at the end), frames.jsonl, map.json, map.ply, "
+        "config.yaml, metrics.json and, when groundtruth.txt exists, eval.json, plots and "
+        "report.html. Ctrl-C stops and keeps everything computed so far.",
+    )
+    p.add_argument("dataset", type=Path, help="dataset folder (rgb/, depth/, rgb.txt, depth.txt)")
+    _add_dataset_options(p)
+    p.add_argument("--out", type=Path, default=None, help="output folder (default out/<name>)")
+    p.add_argument(
+        "--backend",
+        choices=BACKENDS,
+        default="isam2",
+        help="isam2: GTSAM factor graph (default); merge: the paper's frame-by-frame merging",
+    )
+    p.add_argument("--max-frames", type=int, default=None, help="process at most N frames")
+    p.add_argument("--every", type=int, default=1, help="use every K-th frame (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.set_defaults(func=_cmd_run)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from planeslam.runner import run_sequence
+
+    out = args.out if args.out is not None else Path("out") / args.dataset.name
+    result = run_sequence(
+        args.dataset,
+        out,
+        args.config,
+        args.camera,
+        args.backend,
+        args.max_frames,
+        args.every,
+        progress=True,
+        seed=args.seed,
+    )
+    print(result.text())
+    return 0
+
+
+def _add_frame(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "frame",
+        help="the front end on one frame: frame.json and overlay.png",
+        description="Run the per-frame front end (planes, real intersections, plane graph, "
+        "trihedral corners, objects with classes and sizes) on frame INDEX of a dataset and "
+        "write frame.json (camera frame) and overlay.png.",
+    )
+    p.add_argument("dataset", type=Path, help="dataset folder (TUM layout)")
+    p.add_argument("index", type=int, help="frame index (0-based, in association order)")
+    _add_dataset_options(p)
+    p.add_argument("--out", type=Path, default=None, help="output folder (default out/frame)")
+    p.set_defaults(func=_cmd_frame)
+
+
+def _cmd_frame(args: argparse.Namespace) -> int:
+    from planeslam.frame_command import process_frame
+
+    out = args.out if args.out is not None else Path("out") / "frame"
+    result = process_frame(args.dataset, args.index, args.config, args.camera, out)
+    print(result.summary())
+    return 0
+
+
+def _add_bench(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("bench", help="benchmarks: the front end's speed, or a suite of runs")
+    bench = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    f = bench.add_parser(
+        "frontend",
+        help="per-stage speed of the front end on one core, with Open3D segment_plane",
+        description="Per-stage median milliseconds per frame and frames per second of the "
+        "front end (organized and msac segmenters) and of Open3D's segment_plane applied "
+        "plane after plane, on one core, frames preloaded. Default data: the built-in "
+        "synthetic scene.",
+    )
+    f.add_argument("dataset", type=Path, nargs="?", default=None, help="dataset folder")
+    f.add_argument("--frames", type=int, default=30, help="frames to time (default 30)")
+    f.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
+    f.add_argument(
+        "--reference-frames",
+        type=int,
+        default=3,
+        help="frames for the slow Open3D segment_plane reference (default 3)",
+    )
+    f.add_argument("--json", action="store_true", help="print one JSON object")
+    f.set_defaults(func=_cmd_bench_frontend)
+    s = bench.add_parser(
+        "suite",
+        help="run methods on sequences in parallel workers; one table (markdown + CSV)",
+        description="Run every method of a suite on every sequence (worker processes, one "
+        "per core by default) and print one table: ATE, RPE, fps, memory ratio, object size "
+        "error. Default suite: the synthetic scenes plus ../shared/data when present, with "
+        "Open3D RGB-D odometry, the paper's merging and the iSAM2 backend.",
+    )
+    s.add_argument("suite", type=Path, nargs="?", default=None, help="suite YAML")
+    s.add_argument("--jobs", type=int, default=None, help="worker processes (default: cores)")
+    s.add_argument("--out", type=Path, default=Path("out/suite"), help="output folder")
+    s.set_defaults(func=_cmd_bench_suite)
+
+
+def _cmd_bench_frontend(args: argparse.Namespace) -> int:
+    import json
+
+    from planeslam.bench import bench_frontend
+
+    result = bench_frontend(
+        args.dataset,
+        frames=args.frames,
+        config=args.config,
+        progress=not args.json and sys.stderr.isatty(),
+        reference_frames=args.reference_frames,
+    )
+    print(json.dumps(result.to_dict(), indent=2) if args.json else result.to_text())
+    return 0
+
+
+def _cmd_bench_suite(args: argparse.Namespace) -> int:
+    from planeslam.eval.suite import run_suite_command
+
+    table = run_suite_command(args.suite, args.out, jobs=args.jobs, progress=True)
+    print(table)
+    return 0
+
+
 COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     _add_synth,
     _add_demo,
     _add_eval,
+    _add_run,
+    _add_frame,
+    _add_bench,
 ]
 
 

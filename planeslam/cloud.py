@@ -9,6 +9,7 @@ is NaN-free and `points[..., 2] > 0` is exactly the validity mask
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from planeslam.camera import PixelRays
@@ -52,8 +53,18 @@ def organized_cloud(
     Invalid pixels (see module docstring) become (0, 0, 0). `rays` comes from
     `PixelRays.for_camera(camera)`, computed once per camera.
     """
-    ray32 = rays_float32(rays)
-    check_depth_shape(depth_m, ray32.shape[:2])
+    return back_project(depth_m, rays_float32(rays), max_depth_m)
+
+
+def back_project(
+    depth_m: np.ndarray, rays32: np.ndarray, max_depth_m: float = np.inf
+) -> np.ndarray:
+    """`organized_cloud` with the (H, W, 3) float32 z=1 rays given directly -> (H, W, 3)
+    float32 C-contiguous camera-frame points [m], invalid pixels (0, 0, 0)."""
+    check_depth_shape(depth_m, rays32.shape[:2])
     depth = np.asarray(depth_m, dtype=np.float32)
     z = np.where(valid_mask(depth, max_depth_m), depth, np.float32(0.0))
-    return z[..., None] * ray32
+    if rays32.flags.c_contiguous and rays32.shape[2] == 3:
+        # ~30 % faster than numpy's (H, W, 1) * (H, W, 3) broadcast (inner loop of 3)
+        return cv2.multiply(rays32, cv2.merge([z, z, z]))
+    return np.multiply(z[..., None], rays32)

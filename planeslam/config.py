@@ -18,12 +18,15 @@ from typing import Any, TypeVar
 
 import yaml
 
+from planeslam.backend import BackendConfig
 from planeslam.camera import CameraConfig
 from planeslam.dataset import DatasetConfig
 from planeslam.errors import ConfigError
 from planeslam.intersections import IntersectionConfig
+from planeslam.map import MapConfig
 from planeslam.objects import ObjectConfig
 from planeslam.segmentation import SegmentationConfig
+from planeslam.tracking import TrackingConfig
 
 T = TypeVar("T")
 
@@ -44,6 +47,12 @@ class PlaneSlamConfig:
     """Real plane intersections (paper eq. 1-6)."""
     objects: ObjectConfig = field(default_factory=ObjectConfig)
     """Plane graph, trihedral angles, objects and classes (paper 4.2-4.3)."""
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    """Frame-to-map association, closed-form pose, ICP and odometry fallbacks (paper 4.4)."""
+    map: MapConfig = field(default_factory=MapConfig)
+    """The world plane-object map: merging, objects, sparse cloud."""
+    backend: BackendConfig = field(default_factory=BackendConfig)
+    """The iSAM2 backend: noise, keyframes, landmark factors."""
 
 
 def from_mapping(cls: type[T], data: Any, source: str, section: str = "") -> T:

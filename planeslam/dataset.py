@@ -8,6 +8,7 @@ by TUM's `associate.py`), `groundtruth.txt` (TUM trajectory) and
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,6 +19,8 @@ import numpy as np
 from planeslam.camera import CameraConfig
 from planeslam.errors import AssociationError, DatasetFormatError
 from planeslam.trajectory import Trajectory, read_tum
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -180,6 +183,19 @@ class TumDataset:
         return cv2.initUndistortRectifyMap(
             cam.K, np.asarray(cam.distortion), None, cam.K, (cam.width, cam.height), cv2.CV_32FC1
         )
+
+    def groundtruth_pose(self, timestamp: float) -> np.ndarray:
+        """(4, 4) ground-truth T_world_cam nearest to `timestamp` [s] within the association
+        window (`max_time_difference_s`), else the identity (also without ground truth).
+        Starting an estimate there puts it in the ground truth's world frame."""
+        gt = self.groundtruth
+        if gt is None or len(gt) == 0:
+            return np.eye(4)
+        k = int(np.argmin(np.abs(gt.timestamps - timestamp)))
+        if abs(gt.timestamps[k] - timestamp) > self.config.max_time_difference_s:
+            log.info("no ground-truth pose near %.3f s: starting at the identity", timestamp)
+            return np.eye(4)
+        return np.array(gt.T_world_cam[k], dtype=np.float64)
 
     def __len__(self) -> int:
         return len(self.timestamps)

@@ -14,7 +14,9 @@ from planeslam.errors import GeometryError
 
 
 def pose_from_quat(t_xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
-    """(3,) translation [m] + (4,) quaternion xyzw -> (4, 4) pose. Batched: (N, 3), (N, 4) -> (N, 4, 4)."""
+    """(3,) translation [m] + (4,) quaternion xyzw -> (4, 4) pose.
+
+    Batched: (N, 3), (N, 4) -> (N, 4, 4)."""
     t_xyz = np.asarray(t_xyz, dtype=np.float64)
     quat_xyzw = np.asarray(quat_xyzw, dtype=np.float64)
     batch = t_xyz.ndim == 2

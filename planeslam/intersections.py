@@ -10,7 +10,11 @@ For a candidate pair (A, B) with intersection line x(t) = p0 + t u:
 - edge points of A are A's inliers with |n_B . x + d_B| < d_thresh (eq. 3),
   and symmetrically for B (eq. 5); eq. 2 and 4 (distance to the own plane)
   hold for inliers by construction;
-- each side's edge points give an extent [lo, hi] along u: at most
+- each side's edge points give an extent [lo, hi] along u, from the points
+  farther than `extent_min_sigmas` sigma(z) from the other plane when a
+  quarter of them are (points that fit both planes are ambiguous: where a box
+  side's plane meets the floor beyond the side's end, a segmenter hands some
+  floor pixels to the side, and they stretched box-floor edges by 2-4 cm): at most
   `extent_trim_points` (and at most 1 %) of them are trimmed at each end
   against stray inliers, and each end is pushed out by (k + 1) mean point
   spacings (samples stop about one spacing short of a true end; trimming k
@@ -94,6 +98,18 @@ class IntersectionConfig:
     max_points_per_plane: int = 8000
     """Planes with more inliers are strided down to at most this many for speed; 0 keeps
     all. Edge lengths stay within a few mm of the full-resolution ones (tests)."""
+    extent_min_sigmas: float = 3.0
+    """Extent of a side: ignore its edge points closer than this many depth-noise sigma(z)
+    to the other plane when enough farther ones remain (a quarter of them and
+    `min_edge_points`; 0 disables); points where that distance exceeds d_thresh / 2
+    (far, noisy) always count. Those points fit
+    both planes: where a face's plane meets its neighbour beyond the face's end (a box
+    side's plane running on along the floor), a segmenter gives some of the
+    neighbour's pixels to the face, and they would stretch the edge past the face."""
+    depth_sigma_a_m: float = 0.0012
+    """Depth noise sigma(z) = a + b z^2 for `extent_min_sigmas`: a [m] (as segmentation)."""
+    depth_sigma_b_per_m: float = 0.0019
+    """Depth noise sigma(z) = a + b z^2 for `extent_min_sigmas`: b [1/m] (as segmentation)."""
 
     def __post_init__(self) -> None:
         for name in ("d_thresh_m",):
@@ -111,6 +127,9 @@ class IntersectionConfig:
         for name in ("min_edge_points", "adjacency_px", "min_contact_px", "label_stride"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"intersections.{name} must be >= 1, got {getattr(self, name)!r}")
+        for name in ("extent_min_sigmas", "depth_sigma_a_m", "depth_sigma_b_per_m"):
+            if not float(getattr(self, name)) >= 0:
+                raise ConfigError(f"intersections.{name} must be >= 0, got {getattr(self, name)!r}")
         for name in ("extent_trim_points", "max_points_per_plane"):
             if int(getattr(self, name)) < 0:
                 raise ConfigError(f"intersections.{name} must be >= 0, got {getattr(self, name)!r}")
@@ -190,14 +209,15 @@ def intersection_lines(
 
 
 def _inlier_points(plane: Plane, max_points: int) -> tuple[np.ndarray, int]:
-    """((K', 3) inliers, stride): strided down to at most `max_points` when that is > 0."""
-    pts = np.asarray(plane.points, dtype=np.float64)
+    """((3, K') inliers as contiguous coordinate rows, stride): strided down to at most
+    `max_points` when that is > 0 (contiguous rows keep the products below in BLAS)."""
+    pts = np.asarray(plane.points)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise GeometryError(f"plane {plane.id}: points must be (K, 3), got shape {pts.shape}")
     stride = 1
     if max_points and len(pts) > max_points:
         stride = int(np.ceil(len(pts) / max_points))
-    return pts[::stride], stride
+    return np.ascontiguousarray(pts[::stride].T, dtype=np.float64), stride
 
 
 def _group_starts(counts: np.ndarray) -> np.ndarray:
@@ -253,7 +273,7 @@ def find_intersections(
     # One (2 deg, 3) @ (3, K) product per plane gives its points' signed distances
     # to each partner plane and their coordinates t along each pair's line.
     point_sets: list[np.ndarray] = []
-    ss, ts, gs, srcs, cols = [], [], [], [], []
+    ss, ts, gs, srcs, cols, zs = [], [], [], [], [], []
     stride = np.ones(2 * npairs)  # per group: subsampling of the plane its points come from
     for i, plist in partners.items():
         pts, stride_i = _inlier_points(planes[i], cfg.max_points_per_plane)
@@ -261,7 +281,7 @@ def find_intersections(
         gids = np.array([g for _, g in plist], dtype=np.int64)
         stride[gids] = stride_i
         rows = np.concatenate([[planes[j].normal for j, _ in plist], u[gids // 2]])
-        proj = rows @ pts.T  # (2 deg, K)
+        proj = rows @ pts  # (2 deg, K)
         signed = proj[:deg] + np.array([planes[j].d for j, _ in plist])[:, None]  # [m]
         near = np.abs(signed) < cfg.d_thresh_m
         if cfg.d_min_m > 0:
@@ -270,6 +290,7 @@ def find_intersections(
         row, col = np.divmod(flat, near.shape[1])
         ss.append(signed.ravel()[flat])
         ts.append(proj[deg:].ravel()[flat])
+        zs.append(pts[2, col])
         gs.append(gids[row])
         srcs.append(np.full(len(flat), len(point_sets), dtype=np.int64))
         cols.append(col)
@@ -281,6 +302,7 @@ def find_intersections(
     width = 2.0 * float(np.max(np.abs(t), initial=0.0)) + 1.0
     order = np.argsort(g * width + t)
     se, ge, te = np.concatenate(ss)[order], g[order], t[order]
+    ze = np.concatenate(zs)[order]
     src, col = np.concatenate(srcs)[order], np.concatenate(cols)[order]
     pe = ge // 2
 
@@ -289,18 +311,21 @@ def find_intersections(
     cnt = np.bincount(ge, minlength=ngroups)
     start = _group_starts(cnt)
     last = start + np.maximum(cnt, 1) - 1
-    # Trim at most 1 % of a side's points per end: sparse sides keep all their points.
-    k = np.minimum(cfg.extent_trim_points, cnt // 100)
     te_pad = np.append(te, 0.0)  # groups without points read a dummy
-    lo_g = te_pad[np.where(cnt > 0, start + k, len(te))]
-    hi_g = te_pad[np.where(cnt > 0, last - k, len(te))]
-    # Samples fall short of a segment's true ends by about one mean spacing, and
-    # trimming shrinks it by k more: extend each end by (k + 1) spacings (the
-    # unbiased end-point estimate for evenly spread samples).
-    spacing = (hi_g - lo_g) / np.maximum(cnt - 1 - 2 * k, 1)
-    lo_g, hi_g = lo_g - (k + 1) * spacing, hi_g + (k + 1) * spacing
     rlo_g = te_pad[np.where(cnt > 0, start, len(te))]
     rhi_g = te_pad[np.where(cnt > 0, last, len(te))]
+    lo_g, hi_g = _trimmed_extents(te, ge, cnt, cfg.extent_trim_points)
+    if cfg.extent_min_sigmas > 0:
+        # Extents from the points that fit only their own plane, where enough remain.
+        sigma = cfg.depth_sigma_a_m + cfg.depth_sigma_b_per_m * ze * ze
+        # Where that band would be most of d_thresh (far points) all points count.
+        amb = cfg.extent_min_sigmas * sigma
+        core = (np.abs(se) >= amb) | (amb >= 0.5 * cfg.d_thresh_m)
+        cnt_core = np.bincount(ge[core], minlength=ngroups)
+        lo_c, hi_c = _trimmed_extents(te[core], ge[core], cnt_core, cfg.extent_trim_points)
+        # A thin core band (noise near d_thresh, far planes) samples the ends poorly.
+        enough = (cnt_core * stride >= cfg.min_edge_points) & (cnt_core >= 0.25 * cnt)
+        lo_g, hi_g = np.where(enough, lo_c, lo_g), np.where(enough, hi_c, hi_g)
     # The edge is the overlap of both sides' extents.
     lo = np.maximum(lo_g[0::2], lo_g[1::2])
     hi = np.minimum(hi_g[0::2], hi_g[1::2])
@@ -342,6 +367,25 @@ def find_intersections(
     return edges
 
 
+def _trimmed_extents(
+    te: np.ndarray, ge: np.ndarray, cnt: np.ndarray, trim: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robust [lo, hi] along the line [m] of each group's points: `te` (K,) sorted by
+    (group `ge`, t), `cnt` (G,) points per group. Groups without points get (0, 0)."""
+    start = _group_starts(cnt)
+    last = start + np.maximum(cnt, 1) - 1
+    # Trim at most 1 % of a side's points per end: sparse sides keep all their points.
+    k = np.minimum(trim, cnt // 100)
+    te_pad = np.append(te, 0.0)  # groups without points read a dummy
+    lo = te_pad[np.where(cnt > 0, start + k, len(te))]
+    hi = te_pad[np.where(cnt > 0, last - k, len(te))]
+    # Samples fall short of a segment's true ends by about one mean spacing, and
+    # trimming shrinks it by k more: extend each end by (k + 1) spacings (the
+    # unbiased end-point estimate for evenly spread samples).
+    spacing = (hi - lo) / np.maximum(cnt - 1 - 2 * k, 1)
+    return lo - (k + 1) * spacing, hi + (k + 1) * spacing
+
+
 def _eq6_lengths(
     ge: np.ndarray,
     te: np.ndarray,
@@ -361,7 +405,7 @@ def _eq6_lengths(
     side at each end along the line) is the diagonal of a cylinder of radius
     d_thresh: d_edge = sqrt(d_diag^2 - 4 d_thresh^2). `ge`, `te` are the
     edge points' group and line coordinate sorted by (group, t); point k is
-    row `col[k]` of `point_sets[src[k]]`.
+    column `col[k]` of `point_sets[src[k]]` ((3, K) coordinate rows).
     """
     npairs = len(cnt) // 2
     if len(te) == 0:
@@ -383,7 +427,7 @@ def _eq6_lengths(
     flat_src, flat_col = src[idx], col[idx]
     for k, pts in enumerate(point_sets):  # gather only the few candidates per plane
         mask = flat_src == k
-        xyz[mask] = pts[flat_col[mask]]
+        xyz[mask] = pts[:, flat_col[mask]].T
     # Per pair: low-end candidates of both sides against high-end candidates of both.
     low = xyz[:, :ends].reshape(npairs, 2 * ends, 3)
     high = xyz[:, ends:].reshape(npairs, 2 * ends, 3)

@@ -1,7 +1,8 @@
 """Plane graph, trihedral angles, plane-based objects, classes and sizes (paper 4.2-4.3).
 
 `build_structure` runs the per-frame chain after segmentation:
-real intersections -> plane graph -> trihedral corners -> objects (corners
+real intersections -> plane graph -> trihedral corners (edge ends within
+`corner_tol_m` of a corner snapped onto it) -> objects (corners
 sharing a graph edge, aggregated angle by angle) -> class by subgraph
 pattern -> physical size. Everything is in the camera frame, metres.
 
@@ -33,6 +34,7 @@ from planeslam.plane_graph import (
     build_plane_graph,
     estimate_gravity,
     find_corners,
+    snap_edges_to_corners,
 )
 from planeslam.segmentation import Segmentation
 
@@ -56,8 +58,12 @@ class ObjectConfig:
     (of perpendicular to up), else slanted [deg]."""
     corner_min_det: float = 0.2
     """Three planes whose unit normals span a volume |det| below this give no corner."""
-    corner_tol_m: float = 0.05
-    """A corner point must lie within this of each of its three edges' segments [m]."""
+    corner_tol_m: float = 0.08
+    """A corner point must lie within this of each of its three edges' segments [m];
+    edge ends within this of a corner are moved onto it. Not less than about 2x the
+    segmenter's pixel tolerance at the corner's depth (3 sigma(2 m) = 2.6 cm): near
+    a concave corner the three planes share the pixels within that distance of two
+    of them, so each edge stops that much short of the corner."""
     axis_tol_deg: float = 20.0
     """Sizes: edges within this of one direction measure the same dimension, and a new
     dimension must be within this of orthogonal to the others [deg]."""
@@ -232,8 +238,9 @@ def measure_size(
 ) -> tuple[float, ...]:
     """Physical size [m] of the planes `planes` of an object, largest first.
 
-    Uses the edges between the object's planes that touch `planes`. Edge
-    directions are grouped greedily (longest edge first) into up to three
+    Uses the edges between the object's planes that touch `planes`, those
+    between two planes of `planes` first. Edge directions are grouped
+    greedily (longest edge first) into up to three
     mutually orthogonal directions; a dimension is the longest edge along it
     (a dimension seen only partly is as long as seen) or, when two parallel
     planes of `planes` bound it (opposite walls, floor and ceiling), their
@@ -241,11 +248,17 @@ def measure_size(
     """
     cos_tol = float(np.cos(np.deg2rad(axis_tol_deg)))
     sin_tol = float(np.sin(np.deg2rad(axis_tol_deg)))
-    measures: list[tuple[float, np.ndarray]] = []
+    inner: list[tuple[float, np.ndarray]] = []
+    outer: list[tuple[float, np.ndarray]] = []
     for i, j, data in graph.edges(data=True):
         if i in object_planes and j in object_planes and (i in planes or j in planes):
             seg = data["segment"]
-            measures.append((float(data["length_m"]), _unit(seg[1] - seg[0])))
+            both = i in planes and j in planes
+            (inner if both else outer).append((float(data["length_m"]), _unit(seg[1] - seg[0])))
+    # Directions come from the edges between the measured planes first (a box's own
+    # edges); edges to the object's other planes (the floor under a box) then only
+    # lengthen a dimension or add a missing one.
+    measures = inner
     members = sorted(planes)
     for a_idx, a in enumerate(members):
         na, da = graph.nodes[a]["normal"], graph.nodes[a]["d"]
@@ -257,14 +270,15 @@ def measure_size(
                 measures.append((gap, _unit(np.asarray(na, dtype=np.float64))))
     axes: list[np.ndarray] = []
     dims: list[float] = []
-    for length, direction in sorted(measures, key=lambda m: -m[0]):
-        dots = [abs(float(direction @ ax)) for ax in axes]
-        best = int(np.argmax(dots)) if dots else -1
-        if dots and dots[best] >= cos_tol:
-            dims[best] = max(dims[best], length)
-        elif len(axes) < 3 and all(d <= sin_tol for d in dots):
-            axes.append(direction)
-            dims.append(length)
+    for group in (measures, outer):
+        for length, direction in sorted(group, key=lambda m: -m[0]):
+            dots = [abs(float(direction @ ax)) for ax in axes]
+            best = int(np.argmax(dots)) if dots else -1
+            if dots and dots[best] >= cos_tol:
+                dims[best] = max(dims[best], length)
+            elif len(axes) < 3 and all(d <= sin_tol for d in dots):
+                axes.append(direction)
+                dims.append(length)
     return tuple(sorted(dims, reverse=True))
 
 
@@ -309,29 +323,16 @@ def _all_parallel(segmentation: Segmentation, min_angle_deg: float) -> bool:
     return bool(np.all(cos >= np.cos(np.deg2rad(min_angle_deg))))
 
 
-def build_structure(
-    segmentation: Segmentation,
-    intersection_config: IntersectionConfig | None = None,
+def find_objects(
+    graph: nx.Graph,
+    corners: Sequence[Corner],
+    up: np.ndarray,
     object_config: ObjectConfig | None = None,
     patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
-) -> FrameStructure:
-    """Edges, plane graph, corners and classified, sized objects of one frame.
-
-    Camera frame, metres. Degenerate input (no planes, one plane, only
-    parallel planes, no corner) gives an empty or partial result whose
-    `reason` says why; it never raises for such frames.
-    """
-    icfg = intersection_config or IntersectionConfig()
+) -> list[PlaneObject]:
+    """Objects of one frame (paper 4.2-4.3): corners sharing a graph edge aggregated
+    angle by angle, each classified by the pattern table and sized [m] (camera frame)."""
     ocfg = object_config or ObjectConfig()
-    planes = segmentation.planes
-    if ocfg.gravity_up_cam:
-        up = _unit(np.asarray(ocfg.gravity_up_cam, dtype=np.float64))
-        source = "config"
-    else:
-        up, source = estimate_gravity(planes, ocfg.gravity_max_tilt_deg)
-    edges = find_intersections(segmentation, icfg) if len(planes) >= 2 else []
-    graph = build_plane_graph(planes, edges, up, ocfg.orientation_tol_deg)
-    corners = find_corners(graph, ocfg.corner_min_det, ocfg.corner_tol_m)
     groups = aggregate_corners([c.planes for c in corners])
     objects: list[PlaneObject] = []
     for group in groups:
@@ -355,19 +356,64 @@ def build_structure(
                 size_m=size,
             )
         )
+    return objects
+
+
+def gravity_up(
+    segmentation: Segmentation, object_config: ObjectConfig | None = None
+) -> tuple[np.ndarray, str]:
+    """(up (3,) unit vector in the camera frame, source): from the config when given,
+    else estimated from the frame's planes (`plane_graph.estimate_gravity`)."""
+    ocfg = object_config or ObjectConfig()
+    if ocfg.gravity_up_cam:
+        return _unit(np.asarray(ocfg.gravity_up_cam, dtype=np.float64)), "config"
+    return estimate_gravity(segmentation.planes, ocfg.gravity_max_tilt_deg)
+
+
+def structure_reason(
+    segmentation: Segmentation,
+    edges: Sequence[Edge],
+    corners: Sequence[Corner],
+    min_angle_deg: float,
+) -> str:
+    """Why a frame's structure is empty or partial ('' when it has corners)."""
+    planes = segmentation.planes
     if not planes:
-        reason = "no planes in the frame"
-    elif len(planes) == 1:
-        reason = "only one plane: no intersections possible"
-    elif not edges:
-        if _all_parallel(segmentation, icfg.min_angle_deg):
-            reason = f"all {len(planes)} planes are nearly parallel: no intersections"
-        else:
-            reason = f"no real intersections among {len(planes)} planes"
-    elif not corners:
-        reason = f"{len(edges)} real intersections but no trihedral corner: no objects"
-    else:
-        reason = ""
+        return "no planes in the frame"
+    if len(planes) == 1:
+        return "only one plane: no intersections possible"
+    if not edges:
+        if _all_parallel(segmentation, min_angle_deg):
+            return f"all {len(planes)} planes are nearly parallel: no intersections"
+        return f"no real intersections among {len(planes)} planes"
+    if not corners:
+        return f"{len(edges)} real intersections but no trihedral corner: no objects"
+    return ""
+
+
+def build_structure(
+    segmentation: Segmentation,
+    intersection_config: IntersectionConfig | None = None,
+    object_config: ObjectConfig | None = None,
+    patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
+) -> FrameStructure:
+    """Edges, plane graph, corners and classified, sized objects of one frame.
+
+    Camera frame, metres. The composition of the front end's stages `edges`
+    (`find_intersections`), `graph` (`gravity_up`, `build_plane_graph`),
+    `corners` (`find_corners`, which also snaps edge ends to their corners) and
+    `objects` (`find_objects`). Degenerate input (no planes, one plane, only
+    parallel planes, no corner) gives an empty or partial result whose
+    `reason` says why; it never raises for such frames.
+    """
+    icfg = intersection_config or IntersectionConfig()
+    ocfg = object_config or ObjectConfig()
+    edges = find_intersections(segmentation, icfg) if len(segmentation.planes) >= 2 else []
+    up, source = gravity_up(segmentation, ocfg)
+    graph = build_plane_graph(segmentation.planes, edges, up, ocfg.orientation_tol_deg)
+    corners = find_corners(graph, ocfg.corner_min_det, ocfg.corner_tol_m)
+    edges = snap_edges_to_corners(graph, corners, edges, ocfg.corner_tol_m)
+    objects = find_objects(graph, corners, up, ocfg, patterns)
     return FrameStructure(
         edges=edges,
         graph=graph,
@@ -375,7 +421,7 @@ def build_structure(
         objects=objects,
         gravity_up_cam=up,
         gravity_source=source,
-        reason=reason,
+        reason=structure_reason(segmentation, edges, corners, icfg.min_angle_deg),
     )
 
 

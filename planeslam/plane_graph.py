@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import networkx as nx
 import numpy as np
@@ -170,6 +170,44 @@ def find_corners(graph: nx.Graph, min_det: float = 0.2, tol_m: float = 0.05) -> 
         convex = sum(bool(graph.edges[p]["convex"]) for p in pairs)
         corners.append(Corner(planes=tri, point=point, convex_edges=convex))
     return corners
+
+
+def snap_edges_to_corners(
+    graph: nx.Graph, corners: Sequence[Corner], edges: Sequence[Edge], tol_m: float = 0.05
+) -> list[Edge]:
+    """Move each edge end that lies within `tol_m` [m] of one of its corners onto
+    that corner (camera frame), in the graph's edge attributes and in the returned
+    copies of `edges` (segment, length_m).
+
+    A corner is three plane equations solved together, a few mm from the truth; an
+    edge's ends come from the extent of its points, which overshoots a corner where
+    a face's pixels bleed along the neighbour plane and stops short where a face
+    narrows to a thin wedge. An end farther than `tol_m` from the corner (a
+    T-junction: the edge runs on past it) is left alone.
+    """
+    segments = {pair: np.array(graph.edges[pair]["segment"], dtype=np.float64) for pair in
+                {tuple(sorted(p)) for c in corners for p in
+                 ((c.planes[0], c.planes[1]), (c.planes[0], c.planes[2]),
+                  (c.planes[1], c.planes[2]))}}  # fmt: skip
+    for corner in corners:
+        a, b, c = corner.planes
+        for pair in ((a, b), (a, c), (b, c)):
+            seg = segments[pair]
+            gaps = np.linalg.norm(seg - corner.point, axis=1)
+            end = int(np.argmin(gaps))
+            if gaps[end] <= tol_m and gaps[end] < 0.5 * np.linalg.norm(seg[1] - seg[0]):
+                seg[end] = corner.point
+    out = []
+    for edge in edges:
+        pair = tuple(sorted(edge.planes))
+        if pair in segments:
+            seg = segments[pair]
+            length = float(np.linalg.norm(seg[1] - seg[0]))
+            graph.edges[pair]["segment"] = seg
+            graph.edges[pair]["length_m"] = length
+            edge = replace(edge, segment=seg, length_m=length)
+        out.append(edge)
+    return out
 
 
 def aggregate_corners(triples: Sequence[tuple[int, int, int]]) -> list[list[int]]:

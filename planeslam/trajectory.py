@@ -68,7 +68,9 @@ def read_tum(path: str | Path) -> Trajectory:
                 )
             rows.append(values)
     if not rows:
-        raise DatasetFormatError(f"{path}: no poses (expected rows 'timestamp tx ty tz qx qy qz qw')")
+        raise DatasetFormatError(
+            f"{path}: no poses (expected rows 'timestamp tx ty tz qx qy qz qw')"
+        )
     data = np.asarray(rows)
     norms = np.linalg.norm(data[:, 4:8], axis=1)
     if np.any(norms < 1e-6):
@@ -89,7 +91,7 @@ def format_tum_row(timestamp: float, T_world_cam: np.ndarray) -> str:
 def write_tum(path: str | Path, trajectory: Trajectory, header: str = "") -> None:
     """Write a whole trajectory as a TUM file."""
     with TumWriter(path, header=header) as writer:
-        for stamp, T in zip(trajectory.timestamps, trajectory.T_world_cam):
+        for stamp, T in zip(trajectory.timestamps, trajectory.T_world_cam, strict=True):
             writer.write(float(stamp), T)
 
 

@@ -13,7 +13,7 @@ from planeslam.camera import CameraConfig
 from planeslam.config import resolve_config
 from planeslam.dataset import DatasetConfig, Frame, TumDataset
 from planeslam.errors import ConfigError, EvaluationError
-from planeslam.eval.baselines import registration_ok, run_open3d_odometry
+from planeslam.eval.baselines import run_open3d_odometry
 from planeslam.eval.suite import (
     SequenceSpec,
     SuiteConfig,
@@ -25,6 +25,7 @@ from planeslam.eval.suite import (
     write_csv,
 )
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
+from planeslam.odometry import registration_ok
 from planeslam.trajectory import Trajectory
 
 
@@ -36,6 +37,7 @@ class BlankDataset:
     camera: CameraConfig = CameraConfig(width=80, height=60, fx=60.0, fy=60.0, cx=39.5, cy=29.5)
     config: DatasetConfig = DatasetConfig()
     groundtruth: Trajectory | None = None
+    groundtruth_pose = TumDataset.groundtruth_pose
 
     def __len__(self) -> int:
         return self.n
@@ -105,6 +107,8 @@ def test_registration_ok_rejects_open3d_false_successes() -> None:
 
 class BlankOneFrame:
     """A real dataset with the depth of one frame removed."""
+
+    groundtruth_pose = TumDataset.groundtruth_pose
 
     def __init__(self, dataset: TumDataset, blank: int) -> None:
         self.dataset, self.blank = dataset, blank

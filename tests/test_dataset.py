@@ -86,7 +86,8 @@ def make_dataset(root: Path, n: int = 3, depth_dtype=np.uint16, rgb_size=(32, 24
     for i in range(n):
         t = 100.0 + i / 30
         cv2.imwrite(str(root / f"rgb/{i}.png"), np.full((*rgb_size[::-1], 3), 80, np.uint8))
-        cv2.imwrite(str(root / f"depth/{i}.png"), np.full((24, 32), 5000 if depth_dtype == np.uint16 else 50, depth_dtype))
+        depth_value = 5000 if depth_dtype == np.uint16 else 50
+        cv2.imwrite(str(root / f"depth/{i}.png"), np.full((24, 32), depth_value, depth_dtype))
         rgb_lines.append(f"{t:.6f} rgb/{i}.png")
         depth_lines.append(f"{t + 0.005:.6f} depth/{i}.png")
     (root / "rgb.txt").write_text("# color\n" + "\n".join(rgb_lines) + "\n")
@@ -130,13 +131,15 @@ def test_malformed_list_row(tmp_path: Path) -> None:
 
 def test_depth_not_16_bit(tmp_path: Path) -> None:
     root = make_dataset(tmp_path / "seq", depth_dtype=np.uint8)
-    with pytest.raises(DatasetFormatError, match=r"depth/0.png: depth must be a single-channel 16-bit"):
+    message = r"depth/0.png: depth must be a single-channel 16-bit"
+    with pytest.raises(DatasetFormatError, match=message):
         TumDataset(root, CAM)[0]
 
 
 def test_mismatched_image_sizes(tmp_path: Path) -> None:
     root = make_dataset(tmp_path / "seq", rgb_size=(16, 12))
-    with pytest.raises(DatasetFormatError, match=r"colour image is 16x12 but its depth image is 32x24"):
+    message = r"colour image is 16x12 but its depth image is 32x24"
+    with pytest.raises(DatasetFormatError, match=message):
         TumDataset(root, CAM)[0]
 
 
@@ -149,5 +152,6 @@ def test_depth_size_differs_from_camera(tmp_path: Path) -> None:
 def test_no_pairs_within_window(tmp_path: Path) -> None:
     root = make_dataset(tmp_path / "seq")
     (root / "depth.txt").write_text("500.0 depth/0.png\n")
-    with pytest.raises(AssociationError, match=r"no rgb/depth pairs within 0.02 s \(closest pair is"):
+    message = r"no rgb/depth pairs within 0.02 s \(closest pair is"
+    with pytest.raises(AssociationError, match=message):
         TumDataset(root, CAM)

@@ -512,3 +512,38 @@ def test_two_planes_without_odometry_is_indeterminate_and_odometry_fixes_it():
     assert_pose_close(
         isam.calculateEstimate().atPose3(keys.pose(1)).matrix(), poses[1].matrix(), 1e-9, 1e-7
     )
+
+
+def test_fit_covariance_matches_the_factor_error_statistics() -> None:
+    """Monte Carlo: fit a plane to noisy points of a patch far off the optical axis (so the
+    normal/offset cross terms are large); the spread of the built-in factor's error at the
+    true pose and plane must match `error_covariance(fit covariance)`, cross-term signs
+    included (the fit covariance itself has them the other way round)."""
+    from planeslam.factors.plane_observation import error_covariance
+    from planeslam.plane_fit import moments_of, plane_covariance, plane_from_moments
+
+    rng = np.random.default_rng(7)
+    n_true = np.array([0.2, -0.1, -1.0]) / np.linalg.norm([0.2, -0.1, -1.0])
+    d_true = 2.0
+    u = np.cross(n_true, [1.0, 0.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n_true, u)
+    centre = -d_true * n_true + 1.2 * u + 0.8 * v  # the patch sits 1.4 m off the axis
+    errors, covs = [], []
+    for _ in range(400):
+        a, b = rng.uniform(-0.3, 0.3, size=(2, 200))
+        pts = centre + np.outer(a, u) + np.outer(b, v) + rng.normal(0, 0.01, (200, 1)) * n_true
+        count, centroid, scatter = moments_of(pts)
+        n_fit, d_fit, rss = plane_from_moments(centroid, scatter)
+        covs.append(plane_covariance(n_fit, centroid, scatter, count, rss))
+        factor = plane_factor(np.r_[n_fit, d_fit], np.eye(3), X0, P0)
+        values = gtsam.Values()
+        values.insert(X0, gtsam.Pose3())
+        values.insert(P0, gtsam.OrientedPlane3(np.r_[n_true, d_true]))
+        errors.append(factor.unwhitenedError(values))
+    empirical = np.cov(np.array(errors).T)
+    predicted = error_covariance(np.mean(covs, axis=0))
+    corr = empirical[:2, 2] / np.sqrt(np.diag(empirical)[:2] * empirical[2, 2])
+    assert np.all(np.abs(corr) > 0.3)  # the cross terms matter for this patch
+    np.testing.assert_allclose(empirical, predicted, rtol=0.3, atol=0.15 * np.abs(predicted).max())
+    assert np.all(np.sign(empirical[:2, 2]) == np.sign(predicted[:2, 2]))

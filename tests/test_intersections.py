@@ -252,6 +252,35 @@ def test_degenerate_frames_give_no_edges(rng):
     assert find_intersections(parallel) == []
 
 
+def test_bleeding_band_does_not_stretch_the_edge(rng):
+    """A box side (vertical, 0.3 m wide) on a floor 0.9 m ahead; the segmenter gave the
+    side some floor pixels along the line where the side's plane meets the floor,
+    0.1 m beyond the side's end. They fit both planes, so the side's extent ignores
+    them (extent_min_sigmas); without that rule the edge overshoots by 0.1 m."""
+    n = 8000
+    floor = np.column_stack([rng.uniform(-0.4, 0.4, n), np.full(n, 0.3), rng.uniform(0.7, 1.3, n)])
+    side = np.column_stack(
+        [rng.uniform(-0.15, 0.15, n), rng.uniform(0.1, 0.3, n), np.full(n, 0.9)]
+    )  # the face z = 0.9, from the floor (y = 0.3) up to y = 0.1
+    band = np.column_stack(
+        [rng.uniform(0.15, 0.25, 300), np.full(300, 0.3), 0.9 + rng.uniform(-0.003, 0.003, 300)]
+    )  # floor pixels beyond the side's end, within 3 sigma of its plane
+    sigma = 0.0012 + 0.0019 * 0.81
+    floor[:, 1] += rng.normal(0.0, sigma, n)
+    side[:, 2] += rng.normal(0.0, sigma, n)
+    band[:, 1] += rng.normal(0.0, sigma, 300)
+    side = np.concatenate([side, band])
+    planes = [plane_from_points(k, p, p / p[:, 2:3], p[:, 2]) for k, p in enumerate((floor, side))]
+    labels = np.full((40, 40), -1, dtype=np.int32)
+    labels[20:], labels[:20] = 0, 1
+    seg = Segmentation(planes=planes, labels=labels)
+    (edge,) = find_intersections(seg)
+    assert edge.length_m == pytest.approx(0.30, abs=0.01)
+    assert np.sort(edge.segment[:, 0]) == pytest.approx([-0.15, 0.15], abs=0.01)
+    (loose,) = find_intersections(seg, IntersectionConfig(extent_min_sigmas=0.0))
+    assert loose.length_m == pytest.approx(0.40, abs=0.01)
+
+
 def test_d_min_literal_reading_drops_points_near_the_line(rng):
     seg, _ = _wedge(90.0, True, rng)
     (full,) = find_intersections(seg)

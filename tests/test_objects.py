@@ -36,6 +36,7 @@ from planeslam.plane_graph import (
     find_corners,
     find_triangles,
     plane_orientation,
+    snap_edges_to_corners,
 )
 from planeslam.segmentation import Plane, Segmentation
 
@@ -131,6 +132,29 @@ def test_corner_point_and_virtual_corners():
     g.edges[0, 2]["segment"] = seg + np.array([0.3, 0.0, 0.0])
     assert find_corners(g, tol_m=0.05) == []
     assert len(find_corners(g, tol_m=0.5)) == 1
+
+
+def test_edge_ends_snap_to_their_corner():
+    """Ends within corner_tol_m of a corner move onto it (overshoot and shortfall);
+    an end far from it (a T-junction) stays."""
+    g = _box_graph(size=(0.4, 0.3, 0.2))
+    c = np.array([0.3, 0.3, 2.0])
+    ex, ey, ez = np.eye(3)
+    edges = [
+        _edge(0, 1, c - 0.02 * ez, c + 0.2 * ez, True),  # 2 cm past the corner
+        _edge(0, 2, c + 0.03 * ex, c + 0.4 * ex, True),  # stops 3 cm short of it
+        _edge(1, 2, c + 0.1 * ey, c + 0.3 * ey, True),  # 10 cm away: T-junction, kept
+    ]
+    for e in edges:
+        g.edges[e.planes]["segment"] = e.segment
+    (corner,) = find_corners(g, tol_m=0.12)
+    snapped = snap_edges_to_corners(g, [corner], edges, tol_m=0.05)
+    assert [e.length_m for e in snapped] == pytest.approx([0.2, 0.4, 0.2])
+    np.testing.assert_allclose(snapped[0].segment[0], c, atol=1e-9)
+    np.testing.assert_allclose(snapped[1].segment[0], c, atol=1e-9)
+    np.testing.assert_allclose(snapped[2].segment, edges[2].segment)
+    assert g.edges[0, 1]["length_m"] == pytest.approx(0.2)
+    np.testing.assert_allclose(g.edges[0, 2]["segment"], snapped[1].segment)
 
 
 def test_ill_conditioned_triple_is_not_a_corner():

@@ -1,0 +1,343 @@
+"""Isam2Backend on synthetic sequences with exact truth, seeded noisy odometry and planes.
+
+Run as a script for the timing figures: `.venv/bin/python tests/test_backend.py`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import sys
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+from helpers import assert_pose_close
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_landmarks import (  # noqa: E402
+    FakeObservation,
+    FakeSegmentation,
+    FakeStructure,
+    dead_reckoning,
+    noisy_odometry,
+    observe,
+    translation_rmse,
+)
+
+from planeslam.backend import BackendConfig, Isam2Backend  # noqa: E402
+from planeslam.errors import ConfigError  # noqa: E402
+from planeslam.factors import LandmarkConfig, LandmarkKeys, point_on_plane_factor  # noqa: E402
+from planeslam.geometry import angle_between  # noqa: E402
+from planeslam.synth_scenes import box_room_circle, room_boxes_loop  # noqa: E402
+
+ODOM_SIGMAS = (0.003, 0.005)  # rad, m per keyframe
+
+
+def run_sequence(backend, scene, T_true, odometry, observations, associate: bool):
+    """Feed keyframes; the guess is the previous optimised pose moved by the odometry."""
+    T_prev = T_true[0]
+    ids = []
+    for i, obs in enumerate(observations):
+        T_guess = T_prev if i == 0 else T_prev @ odometry[i - 1]
+        if associate:
+            plane_ids, corner_ids = backend.landmarks.associate(obs, T_guess)
+        else:
+            plane_ids, corner_ids = obs.plane_truth, obs.corner_truth
+        ids.append((plane_ids, corner_ids))
+        T_prev = backend.add_keyframe(
+            i,
+            obs.timestamp,
+            T_guess,
+            obs,
+            plane_ids,
+            corner_ids,
+            None if i == 0 else odometry[i - 1],
+        )
+    return ids
+
+
+@pytest.fixture(scope="module")
+def room_loop():
+    """40 keyframes of the room-with-boxes loop (the last pose is the first)."""
+    scene, trajectory = room_boxes_loop(frames=40)
+    rng = np.random.default_rng(5)
+    T_true = trajectory.T_world_cam
+    odometry = noisy_odometry(T_true, rng, *ODOM_SIGMAS)
+    observations = [observe(scene, T, rng, timestamp=float(i)) for i, T in enumerate(T_true)]
+    return scene, T_true, odometry, observations
+
+
+@pytest.fixture(scope="module")
+def circle():
+    scene, trajectory = box_room_circle(frames=36)
+    rng = np.random.default_rng(5)
+    T_true = trajectory.T_world_cam
+    odometry = noisy_odometry(T_true, rng, *ODOM_SIGMAS)
+    observations = [observe(scene, T, rng, timestamp=float(i)) for i, T in enumerate(T_true)]
+    return scene, T_true, odometry, observations
+
+
+def backend_config(**landmarks) -> BackendConfig:
+    """Noise models matching the synthetic noise (observe()'s defaults, ODOM_SIGMAS)."""
+    landmarks = {
+        "plane_sigma_floor_rad": 0.002,
+        "plane_sigma_floor_m": 0.003,
+        "corner_sigma_m": 0.005,
+        **landmarks,
+    }
+    return BackendConfig(
+        odometry_sigma_rot_rad=ODOM_SIGMAS[0],
+        odometry_sigma_trans_m=ODOM_SIGMAS[1],
+        landmarks=LandmarkConfig(**landmarks),
+    )
+
+
+@pytest.mark.parametrize("robust_kernel", [None, "huber"])
+def test_isam2_beats_odometry_below_1cm(room_loop, robust_kernel):
+    scene, T_true, odometry, observations = room_loop
+    backend = Isam2Backend(backend_config(robust_kernel=robust_kernel))
+    run_sequence(backend, scene, T_true, odometry, observations, associate=False)
+    poses = backend.keyframe_poses()
+    assert list(poses) == list(range(len(T_true)))
+    assert [t for t, _ in poses.values()] == [float(i) for i in range(len(T_true))]
+    T_opt = np.array([T for _, T in poses.values()])
+    ate, ate_odom = (
+        translation_rmse(T_opt, T_true),
+        translation_rmse(dead_reckoning(T_true[0], odometry), T_true),
+    )
+    assert ate_odom > 0.03, "odometry drift too small for the test to mean anything"
+    assert ate < 0.007 and ate < ate_odom / 5, (ate, ate_odom)
+    for T_e, T_ref in zip(T_opt, T_true, strict=True):
+        assert_pose_close(T_e, T_ref, 0.01, 0.5)
+    planes = backend.plane_estimates()
+    assert set(planes) == {j for o in observations for j in o.plane_truth.values()}
+    for j, (n, d) in planes.items():
+        assert np.degrees(angle_between(n, scene.planes[j].normal)) < 1.0
+        assert abs(d - scene.planes[j].d) < 0.01
+    corners = backend.corner_estimates()
+    assert len(corners) >= 4
+    for k, p in corners.items():
+        assert np.linalg.norm(p - scene.corners[k].point) < 0.02
+    assert len(backend.update_ms) == len(T_true) and backend.failures == 0
+
+
+def test_loop_closes_through_associated_landmarks(room_loop):
+    """Association by the backend's own map: the first planes are recognised at the end."""
+    scene, T_true, odometry, observations = room_loop
+    backend = Isam2Backend(backend_config())
+    ids = run_sequence(backend, scene, T_true, odometry, observations, associate=True)
+    scene_of: dict[int, int] = {}  # landmark id -> scene plane id
+    for (plane_ids, _), obs in zip(ids, observations, strict=True):
+        for o, lm in plane_ids.items():
+            assert scene_of.setdefault(lm, obs.plane_truth[o]) == obs.plane_truth[o]
+    # one landmark per scene plane: the re-observed planes were matched, not duplicated
+    assert sorted(scene_of.values()) == sorted(set(scene_of.values()))
+    first, last = ids[0][0], ids[-1][0]
+    assert set(first.values()) & set(last.values()), "the loop's last frame saw no first landmark"
+    T_opt = np.array([T for _, T in backend.keyframe_poses().values()])
+    T_odom = dead_reckoning(T_true[0], odometry)
+    end_odom = np.linalg.norm(T_odom[-1, :3, 3] - T_true[-1, :3, 3])
+    assert end_odom > 0.03
+    assert_pose_close(T_opt[-1], T_true[-1], 0.01, 0.5)
+    assert translation_rmse(T_opt, T_true) < 0.007
+
+
+def one_plane_observation(scene, T_world_cam, plane_index: int) -> FakeObservation:
+    full = observe(scene, T_world_cam, np.random.default_rng(0))
+    plane = next(p for p in full.segmentation.planes if full.plane_truth[p.id] == plane_index)
+    plane = dataclasses.replace(plane, id=0)
+    return FakeObservation(
+        full.timestamp, FakeSegmentation([plane]), FakeStructure([], []), {0: plane_index}, {}
+    )
+
+
+def test_under_constrained_keyframes_do_not_raise(circle):
+    """Keyframes seeing one plane (or nothing) follow the odometry; planes stay well posed."""
+    scene, T_true, odometry, observations = circle
+    backend = Isam2Backend(backend_config())
+    floor = scene.plane_by_name("room.floor").id
+    T_prev = T_true[0]
+    for i in range(6):
+        obs = one_plane_observation(scene, T_true[i], floor) if i % 3 else observations[i]
+        if i == 4:
+            obs = FakeObservation(obs.timestamp, FakeSegmentation([]), FakeStructure([], []))
+        T_guess = T_prev if i == 0 else T_prev @ odometry[i - 1]
+        T_prev = backend.add_keyframe(
+            i, float(i), T_guess, obs, obs.plane_truth, None, None if i == 0 else odometry[i - 1]
+        )
+    assert backend.failures == 0
+    assert len(backend.keyframe_poses()) == 6
+    # the floor fixes height and tilt of a one-plane keyframe, odometry the rest
+    T1 = backend.keyframe_poses()[1][1]
+    assert abs(T1[2, 3] - T_true[1][2, 3]) < 0.005
+    assert_pose_close(T1, T_true[1], 0.02, 0.5)
+
+
+def test_indeterminate_update_is_caught_and_the_landmark_dropped(circle, caplog):
+    """A corner tied to one plane only (no observation of its own): the update fails,
+    the backend rebuilds iSAM2, drops that landmark, and the sequence goes on."""
+    scene, T_true, odometry, observations = circle
+    backend = Isam2Backend(backend_config())
+    original = backend.landmarks.add_observations
+    bad_corner = 999
+
+    def with_a_loose_corner(graph, values, pose_key, T, obs, plane_ids, corner_ids=None):
+        added = original(graph, values, pose_key, T, obs, plane_ids, corner_ids)
+        if gtsam.Symbol(pose_key).index() != 3:
+            return added
+        key = backend.keys.corner(bad_corner)
+        values.insert(key, T[:3, 3] + np.array([0.0, 0.0, -1.0]))
+        plane_key = backend.keys.plane(next(iter(plane_ids.values())))
+        factor = point_on_plane_factor(plane_key, key, 0.01)
+        graph.add(factor)
+        return dataclasses.replace(
+            added,
+            factors=added.factors + (factor,),
+            kinds=added.kinds + ("point_on_plane",),
+            new_keys=added.new_keys + (key,),
+            new_corners=added.new_corners + (bad_corner,),
+        )
+
+    backend.landmarks.add_observations = with_a_loose_corner  # type: ignore[method-assign]
+    with caplog.at_level("WARNING", logger="planeslam.backend"):
+        run_sequence(backend, scene, T_true[:8], odometry[:7], observations[:8], associate=False)
+    assert backend.failures == 1
+    assert "Indeterminate" in caplog.text and "dropped 0 new plane and 1 new corner" in caplog.text
+    assert bad_corner not in backend.corner_estimates()
+    assert not backend.estimate.exists(backend.keys.corner(bad_corner))
+    T_opt = np.array([T for _, T in backend.keyframe_poses().values()])
+    assert len(T_opt) == 8
+    for T_e, T_ref in zip(T_opt, T_true[:8], strict=True):
+        assert_pose_close(T_e, T_ref, 0.01, 0.5)
+    # every other factor of keyframe 3 survived the rebuild
+    expected = Isam2Backend(backend_config())
+    run_sequence(expected, scene, T_true[:8], odometry[:7], observations[:8], associate=False)
+    assert backend.num_factors == expected.num_factors
+
+
+def test_is_keyframe_and_config_validation():
+    backend = Isam2Backend(
+        BackendConfig(
+            keyframe_min_translation_m=0.1, keyframe_min_rotation_deg=10.0, keyframe_max_frames=5
+        )
+    )
+    T0 = np.eye(4)
+    moved = np.eye(4)
+    moved[:3, 3] = [0.0, 0.09, 0.0]
+    assert not backend.is_keyframe(T0, moved, 1)
+    moved[1, 3] = 0.11
+    assert backend.is_keyframe(T0, moved, 1)
+    turned = gtsam.Pose3(gtsam.Rot3.Yaw(np.radians(9.0)), np.zeros(3)).matrix()
+    assert not backend.is_keyframe(T0, turned, 4)
+    assert backend.is_keyframe(T0, turned, 5)
+    turned = gtsam.Pose3(gtsam.Rot3.Yaw(np.radians(11.0)), np.zeros(3)).matrix()
+    assert backend.is_keyframe(T0, turned, 0)
+    with pytest.raises(ConfigError, match="relinearize_skip"):
+        BackendConfig(relinearize_skip=0)
+    with pytest.raises(ConfigError, match="odometry_sigma_trans_m"):
+        BackendConfig(odometry_sigma_trans_m=-1.0)
+    obs = FakeObservation(0.0, FakeSegmentation([]), FakeStructure([], []))
+    backend.add_keyframe(3, 0.0, T0, obs, {})
+    with pytest.raises(ConfigError, match="expected > the previous keyframe 3"):
+        backend.add_keyframe(3, 0.1, T0, obs, {})
+    with pytest.raises(ConfigError, match="odometry_sigmas"):
+        backend.add_keyframe(4, 0.1, T0, obs, {}, odometry_sigmas=(0.1, 0.0))
+
+
+def test_backend_config_round_trips_through_a_mapping():
+    from planeslam.config import from_mapping, to_mapping
+
+    config = BackendConfig(
+        extra_updates=0, landmarks=LandmarkConfig(robust_kernel="cauchy", use_structure=False)
+    )
+    assert from_mapping(BackendConfig, to_mapping(config), "test.yaml", "backend") == config
+    with pytest.raises(ConfigError, match="valid keys"):
+        from_mapping(BackendConfig, {"landmark": {}}, "test.yaml", "backend")
+
+
+def test_custom_key_characters():
+    keys = LandmarkKeys(pose_char="k", plane_char="m", corner_char="n")
+    scene, trajectory = box_room_circle(frames=4)
+    rng = np.random.default_rng(1)
+    backend = Isam2Backend(BackendConfig(keys=keys))
+    observations = [observe(scene, T, rng) for T in trajectory.T_world_cam]
+    odometry = noisy_odometry(trajectory.T_world_cam, rng, 0.0, 0.0)
+    run_sequence(backend, scene, trajectory.T_world_cam, odometry, observations, associate=False)
+    chars = {chr(gtsam.Symbol(k).chr()) for k in backend.estimate.keys()}
+    assert chars == {"k", "m", "n"}
+
+
+def test_real_front_end_observations_on_rendered_frames():
+    """The real FrontEnd on rendered depth (Kinect noise) -> associate -> add_keyframe."""
+    from planeslam.config import load_config
+    from planeslam.frontend import FrontEnd
+    from planeslam.synth import render_frame
+
+    scene, trajectory = box_room_circle(frames=24)
+    config = load_config("synthetic")
+    rng = np.random.default_rng(3)
+    front_end = FrontEnd(config, seed=3)
+    T_true = trajectory.T_world_cam[:8]
+    odometry = noisy_odometry(T_true, rng, *ODOM_SIGMAS)
+    backend = Isam2Backend(backend_config())
+    T_prev = T_true[0]
+    for i, T in enumerate(T_true):
+        obs = front_end.process(render_frame(scene, T, config.camera, rng).depth_m, float(i))
+        T_guess = T_prev if i == 0 else T_prev @ odometry[i - 1]
+        plane_ids, corner_ids = backend.landmarks.associate(obs, T_guess)
+        T_prev = backend.add_keyframe(
+            i, float(i), T_guess, obs, plane_ids, corner_ids, None if i == 0 else odometry[i - 1]
+        )
+        assert_pose_close(T_prev, T, 0.01, 0.5)
+    assert backend.failures == 0
+    T_opt = np.array([T for _, T in backend.keyframe_poses().values()])
+    assert translation_rmse(T_opt, T_true) < translation_rmse(
+        dead_reckoning(T_true[0], odometry), T_true
+    )
+    # every estimated plane landmark is close to some true scene plane
+    for n, d in backend.plane_estimates().values():
+        best = min(
+            np.degrees(angle_between(n, p.normal)) + 100 * abs(d - p.d) for p in scene.planes
+        )
+        assert best < 2.0
+
+
+# ---------------------------------------------------------------- timing (script only)
+
+
+def bench(keyframes: int = 100) -> None:
+    """Median ms per keyframe of iSAM2 work, built-in vs robust plane factors, same data."""
+    scene, trajectory = room_boxes_loop(frames=keyframes)
+    rng = np.random.default_rng(0)
+    T_true = trajectory.T_world_cam
+    odometry = noisy_odometry(T_true, rng, *ODOM_SIGMAS)
+    observations = [observe(scene, T, rng, timestamp=float(i)) for i, T in enumerate(T_true)]
+    planes = statistics.median(len(o.segmentation.planes) for o in observations)
+    corners = statistics.median(len(o.structure.corners) for o in observations)
+    print(
+        f"room_boxes_loop, {keyframes} keyframes, median {planes:.0f} planes and "
+        f"{corners:.0f} corners observed per keyframe"
+    )
+    print(
+        f"{'plane factor':14s} {'extra':>5s} {'median ms':>10s} {'p90 ms':>8s} {'ATE mm':>8s} "
+        f"{'landmarks':>10s}"
+    )
+    runs = [(None, 1), ("huber", 1), ("cauchy", 1), (None, 0), ("huber", 0)]
+    for kernel, extra in runs + runs:  # interleaved twice: noisy shared machine
+        config = dataclasses.replace(backend_config(robust_kernel=kernel), extra_updates=extra)
+        backend = Isam2Backend(config)
+        run_sequence(backend, scene, T_true, odometry, observations, associate=False)
+        T_opt = np.array([T for _, T in backend.keyframe_poses().values()])
+        ms = np.array(backend.update_ms)
+        print(
+            f"{kernel or 'built-in':14s} {extra:5d} {np.median(ms):10.2f} "
+            f"{np.percentile(ms, 90):8.2f} "
+            f"{translation_rmse(T_opt, T_true) * 1e3:8.2f} "
+            f"{len(backend.plane_estimates())}p/{len(backend.corner_estimates())}c"
+        )
+
+
+if __name__ == "__main__":
+    bench()

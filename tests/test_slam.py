@@ -1,0 +1,135 @@
+"""Full SLAM on synthetic sequences with exact truth: both backends, the outputs of
+`planeslam run`, interruption, far-apart keyframes, and the frame-by-frame API."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from planeslam.config import resolve_config
+from planeslam.dataset import TumDataset
+from planeslam.errors import ConfigError, DatasetFormatError
+from planeslam.eval.trajectory_metrics import evaluate_trajectory
+from planeslam.map import Map
+from planeslam.runner import run_sequence
+from planeslam.slam import SLAM, run_frames
+from planeslam.synth import synthesize
+from planeslam.trajectory import read_tum
+
+
+@pytest.fixture(scope="module")
+def box_room(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The paper's experiment: a box in a room seen from a circle of 24 poses."""
+    return synthesize("box_room_circle", tmp_path_factory.mktemp("brc") / "seq", seed=3).out_dir
+
+
+@pytest.fixture(scope="module")
+def loop(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A room with boxes walked around in a closed loop, 60 frames."""
+    root = tmp_path_factory.mktemp("loop") / "seq"
+    return synthesize("room_boxes_loop", root, frames=60, seed=4).out_dir
+
+
+def run(root: Path, backend: str, every: int = 1):
+    cfg = resolve_config(root)
+    dataset = TumDataset(root, cfg.camera, cfg.dataset)
+    indices = list(range(0, len(dataset), every))
+    slam = SLAM(cfg, backend, T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
+    summary = run_frames(slam, dataset, indices)
+    ev = evaluate_trajectory(dataset.groundtruth, slam.trajectory(), 0.02, 1.0)
+    return slam, summary, ev
+
+
+def true_sizes(root: Path) -> dict[str, list[float]]:
+    truth = json.loads((root / "truth.json").read_text())
+    return {o["class"]: o["size_m"] for o in truth["objects"]}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("backend", ["merge", "isam2"])
+def test_box_room_circle_poses_and_objects(box_room: Path, backend: str) -> None:
+    slam, summary, ev = run(box_room, backend)
+    assert summary.lost_frames == 0, summary.paths
+    assert ev.ate_rmse_m < 0.01
+    classes = [o.cls for o in slam.map.objects]
+    assert "box" in classes and "room" in classes
+    box = next(o for o in slam.map.objects if o.cls == "box")
+    assert np.max(np.abs(np.array(box.size_m) - true_sizes(box_room)["box"])) < 0.02
+
+
+@pytest.mark.slow
+def test_isam2_beats_merge_on_the_loop(loop: Path) -> None:
+    _, _, merge = run(loop, "merge")
+    _, summary, isam2 = run(loop, "isam2")
+    assert summary.lost_frames == 0
+    assert isam2.ate_rmse_m < 0.01
+    assert isam2.ate_rmse_m <= merge.ate_rmse_m * 1.05
+
+
+@pytest.mark.slow
+def test_keyframes_far_apart_still_track(loop: Path) -> None:
+    """Every 4th frame of the 60-frame loop (15 keyframes around the room, as every 20th of
+    the default 300): planes and corners need no small-motion assumption."""
+    _, summary, ev = run(loop, "merge", every=4)
+    assert summary.lost_frames == 0, summary.paths
+    assert ev.ate_rmse_m < 0.02
+
+
+def test_run_writes_every_output(box_room: Path, tmp_path: Path) -> None:
+    result = run_sequence(box_room, tmp_path / "out", backend="merge", max_frames=6)
+    out = result.out_dir
+    for name in ("config.yaml", "trajectory.txt", "frames.jsonl", "map.json", "map.ply",
+                 "metrics.json", "eval.json", "report.html", "trajectory.png"):  # fmt: skip
+        assert (out / name).is_file(), name
+    assert len(read_tum(out / "trajectory.txt")) == 6
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"] == 6 and metrics["map_bytes"] > 0
+    assert metrics["memory_ratio"] >= 100
+    assert set(metrics["map_bytes_breakdown"]) >= {"planes", "edges", "corners", "objects"}
+    records = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
+    assert [r["index"] for r in records] == list(range(6))
+    reloaded = json.loads(json.dumps(Map.load(out / "map.json").to_dict()))
+    assert reloaded == json.loads((out / "map.json").read_text())
+
+
+def test_interrupted_run_keeps_its_outputs(
+    box_room: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls = {"n": 0}
+    original = SLAM.process
+
+    def interrupt_after_three(self, *args, **kwargs):
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        calls["n"] += 1
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(SLAM, "process", interrupt_after_three)
+    with pytest.raises(KeyboardInterrupt):
+        run_sequence(box_room, tmp_path / "out", backend="merge", max_frames=6)
+    out = tmp_path / "out"
+    assert len(read_tum(out / "trajectory.txt")) == 3
+    assert (out / "map.json").is_file() and (out / "metrics.json").is_file()
+
+
+def test_process_needs_no_dataset(box_room: Path) -> None:
+    cfg = resolve_config(box_room)
+    dataset = TumDataset(box_room, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "merge")
+    first = slam.process(dataset[0].depth_m, 0.0)
+    second = slam.process(dataset[1].depth_m, 1.0, dataset[1].rgb)
+    assert first.keyframe and first.path == "first"
+    assert not second.lost
+    assert len(slam.trajectory()) == 2
+    with pytest.raises(DatasetFormatError, match="depth image is"):
+        slam.process(np.zeros((10, 10), np.float32), 2.0)
+
+
+def test_unknown_backend_and_bad_every(box_room: Path, tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="backend 'gtsam' unknown"):
+        SLAM(resolve_config(box_room), "gtsam")
+    with pytest.raises(ConfigError, match="--every must be >= 1"):
+        run_sequence(box_room, tmp_path, every=0)

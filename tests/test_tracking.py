@@ -1,0 +1,153 @@
+"""Frame-to-map tracking: closed form under a prediction, relocalisation from corner
+hypotheses without any prediction, and the lost path."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from helpers import assert_pose_close
+
+from planeslam.errors import ConfigError
+from planeslam.geometry import invert_pose, pose_from_quat, transform_plane
+from planeslam.tracking import FrameView, MapView, Tracker, TrackingConfig
+
+# A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
+# visible corner is at (1.0, 0.8, 0.2); every normal faces the camera side (+x, +y, +z),
+# world frame, metres.
+NORMALS = np.array(
+    [
+        [0.0, 0.0, 1.0],  # 0 floor
+        [1.0, 0.0, 0.0],  # 1 wall x = 0
+        [0.0, 1.0, 0.0],  # 2 wall y = 0
+        [0.0, 0.0, 1.0],  # 3 box top z = 0.2
+        [1.0, 0.0, 0.0],  # 4 box side x = 1.0
+        [0.0, 1.0, 0.0],  # 5 box side y = 0.8
+    ]
+)
+D = np.array([0.0, 0.0, 0.0, -0.2, -1.0, -0.8])
+CORNERS = np.array([[0, 1, 2], [3, 4, 5]])
+CORNER_POINTS = np.array([[0.0, 0.0, 0.0], [1.0, 0.8, 0.2]])
+
+
+def map_view() -> MapView:
+    return MapView(
+        plane_ids=np.arange(10, 16),
+        normals=NORMALS,
+        d=D,
+        corner_ids=np.array([100, 101]),
+        corner_planes=CORNERS,
+        corner_points=CORNER_POINTS,
+    )
+
+
+def camera_pose() -> np.ndarray:
+    """Looking from (2.2, 2.0, 1.2) roughly toward the room corner (its planes face it)."""
+    return pose_from_quat(np.array([2.2, 2.0, 1.2]), np.array([0.2, 0.9, -0.35, 0.15]))
+
+
+def observe(
+    T_world_cam: np.ndarray, planes: list[int], rng: np.random.Generator, noise: float = 0.0
+) -> FrameView:
+    """The map planes `planes` (and the corners they complete) seen from T_world_cam."""
+    T_cam_world = invert_pose(T_world_cam)
+    n, d = [], []
+    for j in planes:
+        nc, dc = transform_plane(T_cam_world, NORMALS[j], D[j])
+        nc = nc + noise * rng.standard_normal(3)
+        n.append(nc / np.linalg.norm(nc))
+        d.append(dc + 0.01 * noise * rng.standard_normal())
+    n, d = np.array(n), np.array(d)
+    flip = d < 0  # observed normals face the camera
+    n[flip], d[flip] = -n[flip], -d[flip]
+    row = {j: k for k, j in enumerate(planes)}
+    corners = [k for k, c in enumerate(CORNERS) if all(j in row for j in c)]
+    points = CORNER_POINTS[corners] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    return FrameView(
+        plane_ids=np.arange(len(planes)),
+        normals=n,
+        d=d,
+        weights=np.ones(len(planes)),
+        corner_planes=np.array([[row[j] for j in CORNERS[k]] for k in corners]).reshape(-1, 3),
+        corner_points=points.reshape(-1, 3),
+    )
+
+
+def perturb(T: np.ndarray, translation_m: float, angle_deg: float) -> np.ndarray:
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    half = np.radians(angle_deg) / 2
+    dT = pose_from_quat(
+        np.full(3, translation_m / np.sqrt(3)), np.r_[axis * np.sin(half), np.cos(half)]
+    )
+    return T @ dT
+
+
+def test_observed_planes_face_the_camera(rng: np.random.Generator) -> None:
+    frame = observe(camera_pose(), list(range(6)), rng)
+    assert np.all(frame.d > 0)
+
+
+def test_small_motion_tracks_on_planes(rng: np.random.Generator) -> None:
+    T = camera_pose()
+    tracker = Tracker(TrackingConfig())
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    result = tracker._track(frame, map_view(), perturb(T, 0.05, 3.0), None, None)
+    assert result.path == "planes"
+    assert_pose_close(result.T_world_cam, T, 1e-6, 1e-4)
+    assert sorted(m for _, m in result.plane_pairs) == list(range(10, 16))
+    assert sorted(m for _, m in result.corner_pairs) == [100, 101]
+
+
+def test_noisy_planes_track_within_a_centimetre(rng: np.random.Generator) -> None:
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng, noise=0.002)
+    result = Tracker(TrackingConfig())._track(frame, map_view(), perturb(T, 0.03, 2.0), None, None)
+    assert result.path == "planes"
+    assert_pose_close(result.T_world_cam, T, 0.01, 0.5)
+
+
+def test_far_prediction_relocalises_from_corners(rng: np.random.Generator) -> None:
+    """1 m and 60 deg off: the gates reject every pair, a corner hypothesis finds the pose."""
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    tracker = Tracker(TrackingConfig())
+    assert tracker.register(frame, map_view(), perturb(T, 1.0, 60.0)) is None
+    assert len(tracker.hypotheses(frame, map_view())) >= 2
+    result = tracker._track(frame, map_view(), perturb(T, 1.0, 60.0), None, None)
+    assert result.path == "relocalised"
+    assert_pose_close(result.T_world_cam, T, 1e-6, 1e-4)
+
+
+def test_without_relocalisation_or_fallbacks_the_frame_is_lost(rng: np.random.Generator) -> None:
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    tracker = Tracker(TrackingConfig(relocalise=False, icp=False, rgbd_odometry=False))
+    T_pred = perturb(T, 1.0, 60.0)
+    result = tracker._track(frame, map_view(), T_pred, None, None)
+    assert result.lost
+    assert "no fallback" in result.reason
+    np.testing.assert_array_equal(result.T_world_cam, T_pred)
+
+
+def test_one_plane_does_not_give_a_pose(rng: np.random.Generator) -> None:
+    """A single wall leaves rotation and translation free: no plane path, lost without ICP."""
+    T = camera_pose()
+    frame = observe(T, [1], rng)
+    tracker = Tracker(TrackingConfig(icp=False, rgbd_odometry=False))
+    result = tracker._track(frame, map_view(), perturb(T, 0.02, 1.0), None, None)
+    assert result.lost
+    assert "degenerate_rotation" in result.reason
+
+
+def test_empty_map_starts_it(rng: np.random.Generator) -> None:
+    empty = MapView(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0))
+    frame = observe(camera_pose(), [0, 1], rng)
+    result = Tracker(TrackingConfig())._track(frame, empty, np.eye(4), None, None)
+    assert result.path == "first"
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("max_angle_deg", 0.0), ("icp_stride", 0), ("icp_min_fitness", 2.0)]
+)
+def test_config_rejects_bad_values(key: str, value: float) -> None:
+    with pytest.raises(ConfigError, match=f"tracking.{key}"):
+        TrackingConfig(**{key: value})
