@@ -117,6 +117,8 @@ def plane_association_cost(
     overlap: np.ndarray | None = None,
     min_overlap: float = 0.0,
     overlap_weight: float = 1.0,
+    weights: np.ndarray | None = None,
+    gate: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gated cost of pairing each observed plane with each map plane.
 
@@ -125,7 +127,10 @@ def plane_association_cost(
     cost = angle / max_angle + |d_obs_in_map - d_map| / max_offset
     (+ overlap_weight * (1 - overlap) when an (N, M) overlap in [0, 1] is
     given). Returns cost (N, M) and allowed (N, M) bool: angle <= max_angle,
-    offset difference <= max_offset and overlap >= min_overlap.
+    offset difference <= max_offset and overlap >= min_overlap. `weights` (N,) > 0 scale
+    each observed plane's row (e.g. inlier counts): the assignment then gets the large
+    planes right first, so a floor never yields to a small plane that prefers its partner.
+    `gate` (N, M) bool: an extra gate of the caller's (e.g. size compatibility).
     """
     n_map, n_obs = _vectors("n_map", n_map), _vectors("n_obs", n_obs)
     d_map, d_obs = _offsets("d_map", d_map, len(n_map)), _offsets("d_obs", d_obs, len(n_obs))
@@ -150,6 +155,16 @@ def plane_association_cost(
             )
         cost = cost + overlap_weight * (1.0 - overlap)
         allowed &= overlap >= min_overlap
+    if gate is not None:
+        gate = np.asarray(gate, dtype=bool)
+        if gate.shape != cost.shape:
+            raise AssociationError(f"gate has shape {gate.shape}, expected {cost.shape}")
+        allowed &= gate
+    if weights is not None:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != (len(n_obs),) or not np.all(np.isfinite(w)) or np.any(w <= 0):
+            raise AssociationError(f"weights has shape {w.shape}, expected ({len(n_obs)},) > 0")
+        cost = cost * w[:, None]
     return cost, allowed
 
 
@@ -173,6 +188,8 @@ def associate_planes(
     overlap: np.ndarray | None = None,
     min_overlap: float = 0.0,
     overlap_weight: float = 1.0,
+    weights: np.ndarray | None = None,
+    gate: np.ndarray | None = None,
 ) -> list[tuple[int, int]]:
     """One-to-one (obs index, map index) plane pairs under a predicted pose T_map_obs (4, 4).
 
@@ -191,6 +208,8 @@ def associate_planes(
         overlap,
         min_overlap,
         overlap_weight,
+        weights,
+        gate,
     )
     pairs = _assign(cost, allowed)
     logger.debug("associated %d of %d observed planes (%d map planes)", len(pairs), *cost.shape)
@@ -328,6 +347,8 @@ def associate_with_corners(
     max_corner_distance_m: float,
     overlap: np.ndarray | None = None,
     min_overlap: float = 0.0,
+    weights: np.ndarray | None = None,
+    gate: np.ndarray | None = None,
 ) -> Association:
     """Associate corners first, fix their three plane pairs together, then the other planes.
 
@@ -346,7 +367,8 @@ def associate_with_corners(
     3. Matched corners, best first, fix their three plane pairs; a corner
        contradicting pairs fixed before it is dropped.
     4. The remaining planes go through `associate_planes` (with the
-       matching rows / columns of `overlap`, if given).
+       matching rows / columns of `overlap`, `gate` and entries of `weights`, if
+       given). `gate` (N, M) bool also restricts the corners' plane pairings.
     5. Corners whose three planes ended up associated are added
        (`associate_corners`).
     """
@@ -388,6 +410,11 @@ def associate_with_corners(
         best = np.argmin(per_perm.sum(-1), axis=-1)  # (Ko, Km)
         best_angles = np.take_along_axis(per_perm, best[..., None, None], axis=2)[:, :, 0]
         allowed = (dist <= max_corner_distance_m) & (best_angles.max(-1) <= max_angle_rad)
+        if gate is not None:
+            perm = _PERMUTATIONS_3[best]  # (Ko, Km, 3)
+            map_rows = np.take_along_axis(np.broadcast_to(cp_map[None], perm.shape), perm, axis=2)
+            obs_rows = np.broadcast_to(cp_obs[:, None, :], perm.shape)
+            allowed &= np.asarray(gate, dtype=bool)[obs_rows, map_rows].all(-1)
         cost = dist / max_corner_distance_m + best_angles.mean(-1) / max_angle_rad
         matched = _assign(cost, allowed)
         for k_obs, k_map in sorted(matched, key=lambda p: cost[p]):
@@ -422,6 +449,8 @@ def associate_with_corners(
         max_offset_m,
         sub_overlap,
         min_overlap,
+        weights=None if weights is None else np.asarray(weights, dtype=np.float64)[free_obs],
+        gate=None if gate is None else np.asarray(gate, dtype=bool)[np.ix_(free_obs, free_map)],
     )
     plane_pairs = sorted(
         list(fixed_obs.items()) + [(int(free_obs[i]), int(free_map[j])) for i, j in rest]

@@ -70,6 +70,8 @@ class BackendConfig:
     """A frame rotated this much [deg] from the last keyframe becomes a keyframe."""
     keyframe_max_frames: int = 10
     """A frame this many frames after the last keyframe becomes a keyframe."""
+    keyframe_new_planes: int = 4
+    """A frame with this many planes the map does not have yet becomes a keyframe."""
 
     def __post_init__(self) -> None:
         for name in (

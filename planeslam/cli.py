@@ -57,7 +57,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from planeslam.demo import run_demo
 
-    result = run_demo(args.out, seed=args.seed, progress=True)
+    result = run_demo(args.out, seed=args.seed, progress=not args.quiet)
     print(result.summary())
     return 0
 

@@ -21,7 +21,10 @@ For a candidate pair (A, B) with intersection line x(t) = p0 + t u:
   more). The edge is the *overlap* of the two sides' extents. The overlap
   matters: a floor's points near the plane of a box face run along the whole
   floor, but the box face's own points near the floor stop at the box;
-- `length_m` is that overlap length; `length_eq6_m` is the paper's eq. 6 on
+- for a convex edge the union of the two extents is used instead (two faces of
+  one solid end together; a side whose points stop early lost pixels to the
+  segmenter where its face narrows to a thin wedge);
+- `length_m` is that length; `length_eq6_m` is the paper's eq. 6 on
   the same edge points (farthest pair within the raw common extent, d_edge =
   sqrt(d_diag^2 - 4 d_thresh^2)). The overlap extent is the more accurate of
   the two: on the fully visible edges of the synthetic box/room frames at
@@ -347,6 +350,13 @@ def find_intersections(
     if np.any(mixed):
         logger.debug("pairs %s: regions on mixed sides, decided by the sum", pairs[mixed].tolist())
     support = np.bincount(pe[in_edge], weights=stride[ge[in_edge]], minlength=npairs)
+    # A convex edge is where two faces of one solid meet: both faces end where it
+    # ends, so a side whose points stop early lost pixels (a face seen as a thin
+    # wedge toward its far corner): take the union of the two sides' extents.
+    # (A concave edge keeps the overlap: a floor runs on past the box side it meets.)
+    both = valid & convex & (np.minimum(cnt[0::2], cnt[1::2]) > 0)
+    lo = np.where(both, np.minimum(lo_g[0::2], lo_g[1::2]), lo)
+    hi = np.where(both, np.maximum(hi_g[0::2], hi_g[1::2]), hi)
 
     eq6 = _eq6_lengths(ge, te, src, col, point_sets, rlo_g, rhi_g, cnt, cfg.d_thresh_m)
     angle = np.arctan2(np.sqrt(sin2), -cos)  # pi - angle between the normals

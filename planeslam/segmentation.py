@@ -384,7 +384,7 @@ def segment_cloud(
         pixel_stride=1,
     )
     sub_grid = _grid_for(_strided_rays(camera_or_rays, grid, k), sub_cfg.cell_size_px)
-    outline_stride = max(1, _OUTLINE_STRIDE // k)
+    outline_stride = -(-_OUTLINE_STRIDE // k)  # about _OUTLINE_STRIDE full-image pixels
     seg = _segment_organized(cloud[::k, ::k], sub_grid, sub_cfg, depth_m, outline_stride)
     labels = np.repeat(np.repeat(seg.labels, k, axis=0), k, axis=1)
     return replace(seg, labels=np.ascontiguousarray(labels[: grid.height, : grid.width]))
@@ -967,8 +967,11 @@ def _outline(
     poly = poly.reshape(-1, 2)
     if len(poly) < 3:
         poly = np.round(cv2.boxPoints(cv2.minAreaRect(contour))).astype(np.int64)
-    u = np.clip(s * (poly[:, 0] + u0), 0, grid.width - 1)
-    v = np.clip(s * (poly[:, 1] + v0), 0, grid.height - 1)
+    u, v = poly[:, 0] + u0, poly[:, 1] + v0
+    # A region on the last sampled row / column reaches the image border.
+    last_v, last_u = labels_small.shape[0] - 1, labels_small.shape[1] - 1
+    u = np.where(u == last_u, grid.width - 1, np.clip(s * u, 0, grid.width - 1))
+    v = np.where(v == last_v, grid.height - 1, np.clip(s * v, 0, grid.height - 1))
     rays = grid.rays[v, u]
     along = rays @ normal
     along = np.where(np.abs(along) > 1e-9, along, -1e-9)

@@ -159,7 +159,8 @@ class SLAM:
             return True  # the paper merges every frame
         T_kf = self._keyframe_online[self._last_keyframe]
         since = self.frames - self._last_keyframe
-        return self.backend.is_keyframe(T_kf, T_world_cam, since) or unmatched_planes >= 2
+        new_structure = unmatched_planes >= self.config.backend.keyframe_new_planes
+        return self.backend.is_keyframe(T_kf, T_world_cam, since) or new_structure
 
     # -------------------------------------------------------------------------- frames
 

@@ -87,7 +87,15 @@ class TrackingConfig:
     max_residual_angle_deg: float = 3.0
     """A plane pose is trusted when every matched normal agrees within this after solving."""
     max_residual_offset_m: float = 0.05
-    """... and every matched offset within this [m]."""
+    """... and every matched offset within this [m]. Correspondences beyond either gate are
+    dropped and the pose solved again (see `max_outlier_rounds`)."""
+    size_gate_ratio: float = 2.0
+    """An observed plane may match a map plane of area A when its own visible area is at
+    most size_gate_ratio * A + size_gate_margin_m2 (a floor never matches a box top)."""
+    size_gate_margin_m2: float = 0.1
+    """See `size_gate_ratio` [m^2]."""
+    max_outlier_rounds: int = 3
+    """Rounds of dropping correspondences beyond the residual gates and solving again."""
     relocalise: bool = True
     """Try corner and plane-triple hypotheses when the prediction gives no trusted pose."""
     max_triple_planes: int = 10
@@ -131,6 +139,7 @@ class TrackingConfig:
             "max_residual_angle_deg",
             "max_residual_offset_m",
             "relocalise_max_rotation_deg",
+            "size_gate_ratio",
             "relocalise_max_translation_m",
             "icp_voxel_m",
             "icp_max_distance_m",
@@ -170,7 +179,7 @@ class MapView:
     corner_convex_edges: np.ndarray | None = None
     """(K,) how many of each corner's edges are convex (3 box, 0 room); None: unknown."""
     plane_weights: np.ndarray | None = None
-    """(M,) relative plane sizes (e.g. areas) that rank planes for relocalisation."""
+    """(M,) plane areas [m^2]: rank planes for relocalisation and gate association."""
 
     @property
     def empty(self) -> bool:
@@ -195,6 +204,8 @@ class FrameView:
     """(K, 3) corner points [m]."""
     corner_convex_edges: np.ndarray | None = None
     """(K,) how many of each corner's edges are convex; None: unknown."""
+    areas: np.ndarray | None = None
+    """(N,) visible plane areas [m^2]; None: unknown."""
 
     @classmethod
     def of(cls, observation: FrameObservation) -> FrameView:
@@ -213,6 +224,7 @@ class FrameView:
             ).reshape(-1, 3),
             corner_points=np.array([c.point for c in corners], dtype=np.float64).reshape(-1, 3),
             corner_convex_edges=np.array([c.convex_edges for c in corners], dtype=np.int64),
+            areas=np.array([p.area_m2 for p in planes], dtype=np.float64),
         )
 
 
@@ -306,7 +318,19 @@ class Tracker:
             np.radians(cfg.max_angle_deg),
             cfg.max_offset_m,
             cfg.max_corner_distance_m,
+            weights=frame.weights,
+            gate=self._size_gate(frame, view),
         )
+
+    def _size_gate(self, frame: FrameView, view: MapView) -> np.ndarray | None:
+        """(N, M) bool: an observed plane may only match a map plane at least about its size
+        (map outlines grow as planes merge, so a big observation never belongs to a small
+        map plane: a floor is not a box top). None when sizes are unknown."""
+        if frame.areas is None or view.plane_weights is None:
+            return None
+        cfg = self.config
+        limit = cfg.size_gate_ratio * view.plane_weights + cfg.size_gate_margin_m2
+        return frame.areas[:, None] <= limit[None, :]
 
     def _solve(
         self, frame: FrameView, view: MapView, assoc: Association, T_prior: np.ndarray
@@ -331,8 +355,12 @@ class Tracker:
     def register(
         self, frame: FrameView, view: MapView, T_pred: np.ndarray
     ) -> tuple[RegistrationResult, Association] | None:
-        """Closed-form pose from the planes and corners associated under T_pred, solved,
-        re-associated under the solution and solved again; None without correspondences."""
+        """Closed-form pose from the planes and corners associated under T_pred.
+
+        Solved, re-associated under the solution and solved again; after each solve the
+        correspondences whose residuals exceed the gates (wrong matches, a plane whose
+        border was mis-segmented) are dropped and the pose re-solved without them, so one
+        outlier does not cost the frame its plane pose. None without correspondences."""
         T = T_pred
         result: tuple[RegistrationResult, Association] | None = None
         for _ in range(2):
@@ -340,8 +368,36 @@ class Tracker:
             if not assoc.planes:
                 return result
             reg = self._solve(frame, view, assoc, T_pred)
+            for _ in range(self.config.max_outlier_rounds):
+                kept = self._inliers(frame, view, assoc, reg)
+                if kept is None:
+                    break
+                if not kept.planes:
+                    return result
+                assoc, reg = kept, self._solve(frame, view, kept, T_pred)
             result, T = (reg, assoc), reg.T
         return result
+
+    def _inliers(
+        self, frame: FrameView, view: MapView, assoc: Association, reg: RegistrationResult
+    ) -> Association | None:
+        """`assoc` without the correspondences beyond the residual gates, or None when all
+        are within them. Corners go with any of their planes."""
+        cfg = self.config
+        ok = (reg.plane_angle_residual_rad <= np.radians(cfg.max_residual_angle_deg)) & (
+            np.abs(reg.plane_offset_residual_m) <= cfg.max_residual_offset_m
+        )
+        corner_ok = reg.point_residual_m <= cfg.max_corner_distance_m
+        if ok.all() and corner_ok.all():
+            return None
+        planes = [p for p, keep in zip(assoc.planes, ok, strict=True) if keep]
+        kept_obs = {i for i, _ in planes}
+        corners = [
+            c
+            for c, keep in zip(assoc.corners, corner_ok, strict=True)
+            if keep and all(int(i) in kept_obs for i in frame.corner_planes[c[0]])
+        ]
+        return Association(planes=planes, corners=corners)
 
     def corner_hypotheses(self, frame: FrameView, view: MapView) -> np.ndarray:
         """(H, 4, 4) T_world_cam hypotheses from every (observed corner, map corner, pairing of

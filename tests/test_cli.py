@@ -11,7 +11,7 @@ import pytest
 
 from planeslam.cli import main
 
-COMMANDS = ("synth", "demo", "eval")
+COMMANDS = ("synth", "demo", "eval", "run", "frame", "bench")
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -33,10 +33,16 @@ def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     assert "Traceback" not in result.stderr
 
 
-def test_demo_runs_and_finds_the_box(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_demo_runs_full_slam_and_measures_the_box(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert main(["-q", "demo", "--out", str(tmp_path)]) == 0
-    assert "box found in" in capsys.readouterr().out
-    records = [json.loads(line) for line in (tmp_path / "frames.jsonl").read_text().splitlines()]
-    assert len(records) == 24
-    assert all(r["schema"] == "planeslam.map/1" for r in records)
-    assert sum(any(o["class"] == "box" for o in r["objects"]) for r in records) >= 4
+    out = capsys.readouterr().out
+    assert "ATE RMSE" in out and "box:" in out
+    run = tmp_path / "run"
+    records = [json.loads(line) for line in (run / "frames.jsonl").read_text().splitlines()]
+    assert len(records) == 24 and not any(r["path"] == "lost" for r in records)
+    evaluation = json.loads((run / "eval.json").read_text())
+    assert evaluation["ate_rmse_m"] < 0.01
+    box = next(e for e in evaluation["object_size_errors"] if e["class"] == "box")
+    assert box["mean_abs_error_m"] < 0.01

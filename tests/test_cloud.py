@@ -38,3 +38,17 @@ def test_invalid_depth_gives_zero_points():
 def test_wrong_shape_names_both_shapes():
     with pytest.raises(GeometryError, match=r"\(48, 63\).*48x64"):
         organized_cloud(np.ones((48, 63), np.float32), PixelRays.for_camera(CAMERA))
+
+
+@pytest.mark.parametrize("max_depth_m", [6.0, np.inf])
+def test_cloud_validity_matches_valid_mask_on_garbage(max_depth_m, rng):
+    depth = rng.uniform(-2.0, 9.0, (48, 64)).astype(np.float32)
+    flat = depth.ravel()
+    idx = rng.choice(flat.size, 600, replace=False)
+    flat[idx] = rng.choice([np.nan, np.inf, -np.inf, -0.0, 0.0, 1e6], size=600)
+    cloud = organized_cloud(depth, PixelRays.for_camera(CAMERA), max_depth_m=max_depth_m)
+    assert np.all(np.isfinite(cloud))
+    valid = valid_mask(depth, max_depth_m)
+    np.testing.assert_array_equal(cloud[..., 2] > 0, valid)
+    np.testing.assert_array_equal(cloud[..., 2][valid], depth[valid])
+    assert np.all(cloud[~valid] == 0.0)
