@@ -52,7 +52,6 @@ import networkx as nx
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
-from planeslam import objects as _objects
 from planeslam.errors import AssociationError, ConfigError, GeometryError, PlaneSlamError
 from planeslam.geometry import intersect_three_planes, transform_plane
 from planeslam.objects import (
@@ -61,6 +60,7 @@ from planeslam.objects import (
     ObjectConfig,
     ObjectPattern,
     classify_object,
+    convex_part,
     measure_extent,
     measure_size,
 )
@@ -706,13 +706,19 @@ class Map:
             else:
                 measured, within = object_planes, object_planes
                 if size_from == "convex_edges" and mapping is not None:
-                    # objects._convex_part is private (see the module notes). Unlike the
-                    # per-frame sizing, only edges among the convex part count: the
-                    # concave contact edges with the support (box on floor) come out
+                    # Unlike the per-frame sizing, only edges among the convex part count:
+                    # the concave contact edges with the support (box on floor) come out
                     # longer than the object, and the longest-edge rule keeps the worst.
-                    measured = _objects._convex_part(graph, list(mapping), object_planes)
+                    measured = convex_part(graph, list(mapping), object_planes)
                     within = measured
-                size = measure_size(graph, measured, within, ocfg.axis_tol_deg)
+                size = measure_size(
+                    graph,
+                    measured,
+                    within,
+                    ocfg.axis_tol_deg,
+                    up,
+                    pattern is not None and pattern.height_needs_bound,
+                )
             objects.append(
                 MapObject(
                     id=len(objects),

@@ -113,6 +113,11 @@ class ObjectPattern:
     all the object's planes), 'convex_edges' (the same over the planes joined to the
     matched pattern by convex edges: a box without the floor it stands on) or
     'extent' (gravity-aligned bounding box of the object's edge end points)."""
+    height_needs_bound: bool = False
+    """Report the vertical dimension only when two parallel horizontal planes bound it
+    (a room's floor and ceiling); otherwise the size is the horizontal part alone. Walls
+    seen from a low camera show only their lower part, so their vertical edges would give
+    the visible height, not the room's."""
     description: str = ""
 
     def graph(self) -> nx.Graph:
@@ -143,6 +148,7 @@ DEFAULT_PATTERNS: tuple[ObjectPattern, ...] = (
         nodes=(_H, _V, _V),
         edges=((0, 1, _CONCAVE), (0, 2, _CONCAVE), (1, 2, _CONCAVE)),
         all_edges=_CONCAVE,
+        height_needs_bound=True,
         description="a concave corner of a floor or ceiling and two walls, no convex edge",
     ),
     ObjectPattern(
@@ -234,7 +240,12 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def measure_size(
-    graph: nx.Graph, planes: set[int], object_planes: set[int], axis_tol_deg: float
+    graph: nx.Graph,
+    planes: set[int],
+    object_planes: set[int],
+    axis_tol_deg: float,
+    up: np.ndarray | None = None,
+    height_needs_bound: bool = False,
 ) -> tuple[float, ...]:
     """Physical size [m] of the planes `planes` of an object, largest first.
 
@@ -244,17 +255,19 @@ def measure_size(
     mutually orthogonal directions; a dimension is the longest edge along it
     (a dimension seen only partly is as long as seen) or, when two parallel
     planes of `planes` bound it (opposite walls, floor and ceiling), their
-    distance if that is larger.
+    distance if that is larger. With `height_needs_bound` and a unit `up` (3,), the
+    dimension along up is left out unless two parallel planes bound it.
     """
     cos_tol = float(np.cos(np.deg2rad(axis_tol_deg)))
     sin_tol = float(np.sin(np.deg2rad(axis_tol_deg)))
-    inner: list[tuple[float, np.ndarray]] = []
-    outer: list[tuple[float, np.ndarray]] = []
+    inner: list[tuple[float, np.ndarray, bool]] = []
+    outer: list[tuple[float, np.ndarray, bool]] = []
     for i, j, data in graph.edges(data=True):
         if i in object_planes and j in object_planes and (i in planes or j in planes):
             seg = data["segment"]
             both = i in planes and j in planes
-            (inner if both else outer).append((float(data["length_m"]), _unit(seg[1] - seg[0])))
+            entry = (float(data["length_m"]), _unit(seg[1] - seg[0]), False)
+            (inner if both else outer).append(entry)
     # Directions come from the edges between the measured planes first (a box's own
     # edges); edges to the object's other planes (the floor under a box) then only
     # lengthen a dimension or add a missing one.
@@ -267,18 +280,28 @@ def measure_size(
             c = float(na @ nb)
             if abs(c) >= cos_tol:
                 gap = abs(da + db) if c < 0 else abs(da - db)
-                measures.append((gap, _unit(np.asarray(na, dtype=np.float64))))
+                measures.append((gap, _unit(np.asarray(na, dtype=np.float64)), True))
     axes: list[np.ndarray] = []
     dims: list[float] = []
+    bounded: list[bool] = []
     for group in (measures, outer):
-        for length, direction in sorted(group, key=lambda m: -m[0]):
+        for length, direction, is_gap in sorted(group, key=lambda m: -m[0]):
             dots = [abs(float(direction @ ax)) for ax in axes]
             best = int(np.argmax(dots)) if dots else -1
             if dots and dots[best] >= cos_tol:
                 dims[best] = max(dims[best], length)
+                bounded[best] = bounded[best] or is_gap
             elif len(axes) < 3 and all(d <= sin_tol for d in dots):
                 axes.append(direction)
                 dims.append(length)
+                bounded.append(is_gap)
+    if height_needs_bound and up is not None:
+        keep = [
+            k
+            for k, ax in enumerate(axes)
+            if bounded[k] or abs(float(ax @ np.asarray(up, dtype=np.float64))) < cos_tol
+        ]
+        dims = [dims[k] for k in keep]
     return tuple(sorted(dims, reverse=True))
 
 
@@ -302,7 +325,7 @@ def measure_extent(graph: nx.Graph, object_planes: set[int], up: np.ndarray) -> 
     return tuple(sorted([float(horizontal[0]), float(horizontal[1]), height], reverse=True))
 
 
-def _convex_part(graph: nx.Graph, seeds: Sequence[int], object_planes: set[int]) -> set[int]:
+def convex_part(graph: nx.Graph, seeds: Sequence[int], object_planes: set[int]) -> set[int]:
     """Planes of the object joined to `seeds` through convex edges only."""
     convex = nx.Graph()
     convex.add_nodes_from(seeds)
@@ -345,8 +368,15 @@ def find_objects(
         else:
             measured = object_planes
             if size_from == "convex_edges" and mapping is not None:
-                measured = _convex_part(graph, list(mapping), object_planes)
-            size = measure_size(graph, measured, object_planes, ocfg.axis_tol_deg)
+                measured = convex_part(graph, list(mapping), object_planes)
+            size = measure_size(
+                graph,
+                measured,
+                object_planes,
+                ocfg.axis_tol_deg,
+                up,
+                pattern is not None and pattern.height_needs_bound,
+            )
         objects.append(
             PlaneObject(
                 id=len(objects),

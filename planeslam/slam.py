@@ -17,6 +17,7 @@ world frame is the first camera's unless `T_world_first` is given.
 
 from __future__ import annotations
 
+import concurrent.futures
 import logging
 import time
 from collections.abc import Callable, Iterable
@@ -26,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from planeslam.config import PlaneSlamConfig
-from planeslam.dataset import TumDataset
+from planeslam.dataset import Frame, TumDataset
 from planeslam.errors import ConfigError, DatasetFormatError
 from planeslam.frontend import FrameObservation, FrontEnd
 from planeslam.geometry import invert_pose, transform_points
@@ -220,7 +221,13 @@ class SLAM:
         """Merge the frame into the map and, with iSAM2, optimise; returns its pose."""
         T_world_cam = track.T_world_cam
         t0 = time.perf_counter()
-        planes = self.map.merge(observation, T_world_cam, track.plane_pairs, track.corner_pairs)
+        planes = self.map.merge(
+            observation,
+            T_world_cam,
+            track.plane_pairs,
+            track.corner_pairs,
+            reaggregate=self.backend is None,  # with iSAM2, update_geometry re-aggregates
+        )
         self._add_sparse_points(observation, T_world_cam, rgb)
         stage_ms["map"] = 1e3 * (time.perf_counter() - t0)
         if self.backend is not None:
@@ -238,13 +245,29 @@ class SLAM:
                 self._corner_ids(observation, planes),
                 odometry,
             )
-            self.map.update_geometry(
-                self.backend.plane_estimates(), self.backend.corner_estimates()
-            )
+            self._update_map_geometry()
             for kf, (_, T) in self.backend.keyframe_poses().items():
                 self._keyframe_final[kf] = T
             stage_ms["backend"] = 1e3 * (time.perf_counter() - t1)
         return T_world_cam
+
+    def _update_map_geometry(self, min_change: float = 1e-5) -> None:
+        """Move the map's planes and corners onto the optimised landmarks that moved by more
+        than `min_change` (rad for normals, m for offsets and points); then re-aggregate."""
+        planes, corners = {}, {}
+        current = self.map.planes
+        for pid, (n, d) in self.backend.plane_estimates().items():
+            old = current.get(pid)
+            if old is None:
+                continue
+            if abs(d - old.d) > min_change or np.max(np.abs(n - old.normal)) > min_change:
+                planes[pid] = (n, d)
+        current_corners = self.map.corners
+        for cid, point in self.backend.corner_estimates().items():
+            old = current_corners.get(cid)
+            if old is not None and np.max(np.abs(point - old.point)) > min_change:
+                corners[cid] = point
+        self.map.update_geometry(planes, corners)
 
     def _corner_ids(self, observation, planes: dict[int, int]) -> dict[int, int]:
         """{observed corner index: map corner id} for corners whose three planes are mapped
@@ -283,6 +306,18 @@ class SLAM:
         self._T_anchor_cam.append(invert_pose(T_anchor) @ T_world_cam)
         self._online.append(T_world_cam)
 
+    def finish(self) -> float:
+        """End of the sequence: with iSAM2, a batch optimisation of the whole graph
+        (`backend.final_iterations`) and the map moved onto the result. Returns ms."""
+        if self.backend is None or self.config.backend.final_iterations == 0:
+            return 0.0
+        start = time.perf_counter()
+        self.backend.optimize_batch(self.config.backend.final_iterations)
+        for kf, (_, T) in self.backend.keyframe_poses().items():
+            self._keyframe_final[kf] = T
+        self._update_map_geometry()
+        return 1e3 * (time.perf_counter() - start)
+
     # -------------------------------------------------------------------------- results
 
     def trajectory(self) -> Trajectory:
@@ -310,6 +345,14 @@ class RunSummary:
     """Tracking path -> number of frames."""
     frame_timings: list[dict[str, float]] = field(repr=False)
     """Per frame {stage: ms}."""
+    finish_ms: float = 0.0
+    """`SLAM.finish` (final batch optimisation), included in `seconds`."""
+
+
+def _read(dataset: TumDataset, index: int) -> tuple[Frame, float]:
+    t0 = time.perf_counter()
+    frame = dataset[index]
+    return frame, 1e3 * (time.perf_counter() - t0)
 
 
 def run_frames(
@@ -319,22 +362,29 @@ def run_frames(
     on_result: Callable[[FrameResult], None] | None = None,
 ) -> RunSummary:
     """Feed `dataset[i]` for i in `indices` to `slam`; `on_result` sees every FrameResult as
-    it comes (write it out there: an interrupted run then keeps what it did)."""
+    it comes (write it out there: an interrupted run then keeps what it did). The next
+    frame is read on a second thread while this one is processed; the 'read' stage is the
+    reader's time, which overlaps processing."""
     timings: list[dict[str, float]] = []
     paths: dict[str, int] = {}
     lost = keyframes = 0
+    indices = list(indices)
     start = time.perf_counter()
-    for i in indices:
-        t0 = time.perf_counter()
-        frame = dataset[i]
-        read_ms = 1e3 * (time.perf_counter() - t0)
-        result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
-        timings.append({"read": read_ms, **result.stage_ms})
-        paths[result.path] = paths.get(result.path, 0) + 1
-        lost += result.lost
-        keyframes += result.keyframe
-        if on_result is not None:
-            on_result(result)
+    # Frames are read (PNG decoding releases the GIL) one ahead on a second thread.
+    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as reader:
+        upcoming = reader.submit(_read, dataset, indices[0]) if indices else None
+        for k in range(len(indices)):
+            frame, read_ms = upcoming.result()
+            if k + 1 < len(indices):
+                upcoming = reader.submit(_read, dataset, indices[k + 1])
+            result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
+            timings.append({"read": read_ms, **result.stage_ms})
+            paths[result.path] = paths.get(result.path, 0) + 1
+            lost += result.lost
+            keyframes += result.keyframe
+            if on_result is not None:
+                on_result(result)
+    finish_ms = slam.finish()
     return RunSummary(
         frames=len(timings),
         seconds=time.perf_counter() - start,
@@ -342,4 +392,5 @@ def run_frames(
         keyframes=keyframes,
         paths=paths,
         frame_timings=timings,
+        finish_ms=finish_ms,
     )

@@ -367,3 +367,43 @@ def test_plane_from_points_helper_is_exact(rng):
     p = plane_from_points(0, pts, pts / pts[:, 2:3], pts[:, 2])
     np.testing.assert_allclose(p.normal, [0.0, -1.0, 0.0], atol=1e-9)
     assert p.d == pytest.approx(0.7)
+
+
+def _room_graph(with_ceiling: bool):
+    """Floor z = 0 (normal up), walls x = 0 and y = 0, optionally a ceiling z = 2.5;
+    vertical corner edge seen only up to 0.3 m (a low camera)."""
+    import networkx as nx
+
+    g = nx.Graph()
+    g.add_node(0, normal=np.array([0.0, 0.0, 1.0]), d=0.0)
+    g.add_node(1, normal=np.array([1.0, 0.0, 0.0]), d=0.0)
+    g.add_node(2, normal=np.array([0.0, 1.0, 0.0]), d=0.0)
+
+    def edge(a, b, p, q):
+        seg = np.array([p, q], dtype=float)
+        g.add_edge(a, b, segment=seg, length_m=float(np.linalg.norm(seg[1] - seg[0])))
+
+    edge(0, 1, [0, 0, 0], [0, 3.5, 0])
+    edge(0, 2, [0, 0, 0], [4.0, 0, 0])
+    edge(1, 2, [0, 0, 0], [0, 0, 0.3])
+    if with_ceiling:
+        g.add_node(3, normal=np.array([0.0, 0.0, -1.0]), d=2.5)
+        edge(3, 1, [0, 0, 2.5], [0, 3.5, 2.5])
+    return g
+
+
+@pytest.mark.parametrize(
+    ("with_ceiling", "expected"), [(False, (4.0, 3.5)), (True, (4.0, 3.5, 2.5))]
+)
+def test_room_height_only_when_floor_and_ceiling_bound_it(with_ceiling, expected) -> None:
+    from planeslam.objects import measure_size
+
+    g = _room_graph(with_ceiling)
+    planes = set(g.nodes)
+    up = np.array([0.0, 0.0, 1.0])
+    size = measure_size(g, planes, planes, 10.0, up, height_needs_bound=True)
+    np.testing.assert_allclose(size, expected, atol=1e-9)
+    # Without the rule the visible 0.3 m of the vertical edge would pass for the height.
+    assert measure_size(g, planes, planes, 10.0)[-1] == pytest.approx(
+        0.3 if not with_ceiling else 2.5
+    )
