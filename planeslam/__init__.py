@@ -11,9 +11,19 @@ from planeslam.errors import (
     GeometryError,
     PlaneSlamError,
 )
+from planeslam.map import Map, MapConfig
 from planeslam.trajectory import Trajectory, read_tum, write_tum
 
 __version__ = "0.1.0"
+
+def __getattr__(name: str):
+    """`planeslam.SLAM` is imported on first use (it loads Open3D)."""
+    if name == "SLAM":
+        from planeslam.slam import SLAM
+
+        return SLAM
+    raise AttributeError(f"module 'planeslam' has no attribute {name!r}")
+
 
 __all__ = [
     "AssociationError",
@@ -24,8 +34,11 @@ __all__ = [
     "EvaluationError",
     "Frame",
     "GeometryError",
+    "Map",
+    "MapConfig",
     "PlaneSlamConfig",
     "PlaneSlamError",
+    "SLAM",
     "Trajectory",
     "TumDataset",
     "load_config",

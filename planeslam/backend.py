@@ -62,7 +62,7 @@ class BackendConfig:
     converges too loosely for plane landmarks)."""
     extra_updates: int = 0
     """Additional ISAM2.update() iterations after each keyframe's update."""
-    final_iterations: int = 20
+    final_iterations: int = 5
     """Levenberg-Marquardt iterations over the whole graph when a run finishes (0: none)."""
     keys: LandmarkKeys = field(default_factory=LandmarkKeys)
     """Symbol characters of poses, plane and corner landmarks."""

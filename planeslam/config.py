@@ -30,7 +30,7 @@ from planeslam.tracking import TrackingConfig
 
 T = TypeVar("T")
 
-PRESETS = ("tum_fr1", "tum_fr2", "tum_fr3", "sevenscenes", "synthetic")
+PRESETS = ("defaults", "tum_fr1", "tum_fr2", "tum_fr3", "sevenscenes", "synthetic")
 
 
 @dataclass(frozen=True)

@@ -749,10 +749,13 @@ class Map:
     # ------------------------------------------------------------------ backend
 
     def update_geometry(
-        self, planes: Mapping[int, tuple[np.ndarray, float]], corners: Mapping[int, np.ndarray]
+        self,
+        planes: Mapping[int, tuple[np.ndarray, float]],
+        corners: Mapping[int, np.ndarray],
+        reaggregate: bool = True,
     ) -> None:
         """Replace planes' (n (3,), d [m]) and corners' points (3,), world frame (e.g.
-        optimised landmarks), then re-aggregate.
+        optimised landmarks), then re-aggregate (unless `reaggregate` is False).
 
         Each updated plane's centroid and outline are projected onto the new plane, its
         scatter rotated by the smallest rotation from the old to the new normal (so a
@@ -807,7 +810,8 @@ class Map:
                     logger.debug("corner %d: planes ill-conditioned, point kept", cid)
                     continue
                 self._corners[cid] = replace(c, point=x)
-        self.reaggregate()
+        if reaggregate:
+            self.reaggregate()
 
     # ------------------------------------------------------------------ sparse cloud
 

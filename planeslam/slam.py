@@ -33,7 +33,7 @@ from planeslam.frontend import FrameObservation, FrontEnd
 from planeslam.geometry import invert_pose, transform_points
 from planeslam.map import Map
 from planeslam.odometry import RgbdOdometry
-from planeslam.tracking import MapView, Tracker
+from planeslam.tracking import MapView, Tracker, TrackResult
 from planeslam.trajectory import Trajectory
 
 logger = logging.getLogger(__name__)
@@ -188,8 +188,6 @@ class SLAM:
         t0 = time.perf_counter()
         T_pred = self.predicted_pose()
         if index == 0:
-            from planeslam.tracking import TrackResult
-
             track = TrackResult(self._T_world_first, "first", "first frame")
         else:
             track = self.tracker.track(observation, self.map_view(), T_pred, rgb, depth_m)
@@ -232,6 +230,7 @@ class SLAM:
         stage_ms["map"] = 1e3 * (time.perf_counter() - t0)
         if self.backend is not None:
             t1 = time.perf_counter()
+            corner_ids = self._corner_ids(observation, planes)
             odometry = None
             if self._last_keyframe is not None:
                 T_prev = self._keyframe_online[self._last_keyframe]
@@ -242,32 +241,43 @@ class SLAM:
                 T_world_cam,
                 observation,
                 planes,
-                self._corner_ids(observation, planes),
+                corner_ids,
                 odometry,
             )
-            self._update_map_geometry()
-            for kf, (_, T) in self.backend.keyframe_poses().items():
-                self._keyframe_final[kf] = T
+            self._keyframe_final[index] = T_world_cam
+            # The planes and corners this keyframe saw follow their landmarks now (tracking
+            # uses them next); the whole map and its objects are rebuilt in `finish`.
+            self._update_map_geometry(planes.values(), corner_ids.values(), reaggregate=False)
             stage_ms["backend"] = 1e3 * (time.perf_counter() - t1)
         return T_world_cam
 
-    def _update_map_geometry(self, min_change: float = 1e-5) -> None:
-        """Move the map's planes and corners onto the optimised landmarks that moved by more
-        than `min_change` (rad for normals, m for offsets and points); then re-aggregate."""
+    def _update_map_geometry(
+        self,
+        plane_ids: Iterable[int] | None = None,
+        corner_ids: Iterable[int] | None = None,
+        reaggregate: bool = True,
+        min_change: float = 1e-5,
+    ) -> None:
+        """Move the map's planes and corners (those listed; all when None) onto the
+        optimised landmarks that moved by more than `min_change` (rad for normals, m for
+        offsets and points), then re-aggregate the objects if asked."""
+        plane_estimates = self.backend.plane_estimates()
+        corner_estimates = self.backend.corner_estimates()
+        current, current_corners = self.map.planes, self.map.corners
         planes, corners = {}, {}
-        current = self.map.planes
-        for pid, (n, d) in self.backend.plane_estimates().items():
-            old = current.get(pid)
-            if old is None:
+        for pid in plane_estimates if plane_ids is None else plane_ids:
+            old, new = current.get(pid), plane_estimates.get(pid)
+            if old is None or new is None:
                 continue
+            n, d = new
             if abs(d - old.d) > min_change or np.max(np.abs(n - old.normal)) > min_change:
                 planes[pid] = (n, d)
-        current_corners = self.map.corners
-        for cid, point in self.backend.corner_estimates().items():
-            old = current_corners.get(cid)
-            if old is not None and np.max(np.abs(point - old.point)) > min_change:
-                corners[cid] = point
-        self.map.update_geometry(planes, corners)
+        for cid in corner_estimates if corner_ids is None else corner_ids:
+            old, point = current_corners.get(cid), corner_estimates.get(cid)
+            if old is not None and point is not None:
+                if np.max(np.abs(point - old.point)) > min_change:
+                    corners[cid] = point
+        self.map.update_geometry(planes, corners, reaggregate=reaggregate)
 
     def _corner_ids(self, observation, planes: dict[int, int]) -> dict[int, int]:
         """{observed corner index: map corner id} for corners whose three planes are mapped
@@ -307,12 +317,15 @@ class SLAM:
         self._online.append(T_world_cam)
 
     def finish(self) -> float:
-        """End of the sequence: with iSAM2, a batch optimisation of the whole graph
-        (`backend.final_iterations`) and the map moved onto the result. Returns ms."""
-        if self.backend is None or self.config.backend.final_iterations == 0:
+        """End of the sequence. With iSAM2: a batch optimisation of the whole graph
+        (`backend.final_iterations`, 0 for none), every keyframe pose taken from the result
+        and the whole map (planes, corners, then objects) rebuilt from the optimised
+        landmarks. Returns the wall-clock ms."""
+        if self.backend is None:
             return 0.0
         start = time.perf_counter()
-        self.backend.optimize_batch(self.config.backend.final_iterations)
+        if self.config.backend.final_iterations:
+            self.backend.optimize_batch(self.config.backend.final_iterations)
         for kf, (_, T) in self.backend.keyframe_poses().items():
             self._keyframe_final[kf] = T
         self._update_map_geometry()

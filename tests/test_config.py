@@ -105,5 +105,16 @@ def test_bad_camera_override(text: str) -> None:
 def test_unknown_preset() -> None:
     from planeslam.config import preset_path
 
-    with pytest.raises(ConfigError, match="presets: tum_fr1"):
+    with pytest.raises(ConfigError, match="presets: defaults, tum_fr1"):
         preset_path("kinect9")
+
+
+def test_defaults_yaml_lists_every_key_with_the_code_default() -> None:
+    """configs/defaults.yaml documents every key; regenerate it when a default changes."""
+    import yaml
+
+    from planeslam.config import PlaneSlamConfig, load_config, preset_path, to_mapping
+
+    assert load_config("defaults") == PlaneSlamConfig()
+    written = yaml.safe_load(preset_path("defaults").read_text(encoding="utf-8"))
+    assert written == yaml.safe_load(yaml.safe_dump(to_mapping(PlaneSlamConfig())))
