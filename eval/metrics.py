@@ -9,11 +9,14 @@ import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from planeslam.errors import EvaluationError
+
+if TYPE_CHECKING:
+    from planeslam.slam import SLAM, RunSummary
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +120,33 @@ def run_metrics(
         keyframes=int(keyframes),
         tracking_paths=dict(tracking_paths or {}),
         map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
+    )
+
+
+def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
+    """RunMetrics of a `planeslam.slam.SLAM` run: speed and paths from its `RunSummary`
+    (None for an interrupted run: frame count only), the map's bytes by part against the
+    point cloud of the processed frames."""
+    breakdown = slam.map.memory_bytes()
+    parts = {k: v for k, v in breakdown.items() if k != "total"}
+    if summary is None:
+        return run_metrics(
+            frames=slam.frames,
+            seconds=0.0,
+            map_bytes=breakdown["total"],
+            pointcloud_bytes=slam.pointcloud_bytes,
+            map_bytes_breakdown=parts,
+        )
+    return run_metrics(
+        frames=summary.frames,
+        seconds=summary.seconds,
+        frame_timings=summary.frame_timings,
+        map_bytes=breakdown["total"],
+        pointcloud_bytes=slam.pointcloud_bytes,
+        lost_frames=summary.lost_frames,
+        keyframes=summary.keyframes,
+        tracking_paths=summary.paths,
+        map_bytes_breakdown=parts,
     )
 
 

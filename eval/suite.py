@@ -25,7 +25,7 @@ from planeslam.dataset import TumDataset
 from planeslam.errors import ConfigError, EvaluationError
 from planeslam.trajectory import Trajectory, write_tum
 
-from .metrics import RunMetrics, run_metrics, write_metrics
+from .metrics import RunMetrics, run_metrics, slam_run_metrics, write_metrics
 from .object_sizes import mean_object_size_error, object_size_errors
 from .trajectory_metrics import evaluate_trajectory
 
@@ -125,18 +125,7 @@ def _slam_method(backend: str) -> Method:
             config, backend, T_world_first=dataset.groundtruth_pose(dataset.timestamps[indices[0]])
         )
         summary = run_frames(slam, dataset, indices)
-        breakdown = slam.map.memory_bytes()
-        metrics = run_metrics(
-            frames=summary.frames,
-            seconds=summary.seconds,
-            frame_timings=summary.frame_timings,
-            map_bytes=breakdown["total"],
-            pointcloud_bytes=slam.pointcloud_bytes,
-            lost_frames=summary.lost_frames,
-            keyframes=summary.keyframes,
-            tracking_paths=summary.paths,
-            map_bytes_breakdown={k: v for k, v in breakdown.items() if k != "total"},
-        )
+        metrics = slam_run_metrics(slam, summary)
         objects = slam.map.to_dict()["objects"]
         return MethodResult(trajectory=slam.trajectory(), metrics=metrics, objects=objects)
 

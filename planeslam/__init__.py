@@ -16,6 +16,7 @@ from planeslam.trajectory import Trajectory, read_tum, write_tum
 
 __version__ = "0.1.0"
 
+
 def __getattr__(name: str):
     """`planeslam.SLAM` is imported on first use (it loads Open3D)."""
     if name == "SLAM":

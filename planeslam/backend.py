@@ -95,6 +95,7 @@ class BackendConfig:
             ("extra_updates", 0),
             ("final_iterations", 0),
             ("keyframe_max_frames", 1),
+            ("keyframe_new_planes", 1),
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:

@@ -19,15 +19,7 @@ import numpy as np
 from planeslam.camera import PixelRays
 from planeslam.cloud import check_depth_shape, organized_cloud
 from planeslam.config import PlaneSlamConfig
-from planeslam.intersections import find_intersections
-from planeslam.objects import (
-    FrameStructure,
-    find_objects,
-    gravity_up,
-    structure_reason,
-    to_map_dict,
-)
-from planeslam.plane_graph import build_plane_graph, find_corners, snap_edges_to_corners
+from planeslam.objects import FrameStructure, build_structure, to_map_dict
 from planeslam.segmentation import Segmentation, segment_cloud
 
 log = logging.getLogger(__name__)
@@ -124,25 +116,9 @@ class FrontEnd:
         t.append(time.perf_counter())
         seg = segment_cloud(cloud, self.rays, cfg.segmentation, rng=self.rng, depth_m=depth_m)
         t.append(time.perf_counter())
-        edges = find_intersections(seg, cfg.intersections) if len(seg.planes) >= 2 else []
-        t.append(time.perf_counter())
-        up, source = gravity_up(seg, cfg.objects)
-        graph = build_plane_graph(seg.planes, edges, up, cfg.objects.orientation_tol_deg)
-        t.append(time.perf_counter())
-        corners = find_corners(graph, cfg.objects.corner_min_det, cfg.objects.corner_tol_m)
-        edges = snap_edges_to_corners(graph, corners, edges, cfg.objects.corner_tol_m)
-        t.append(time.perf_counter())
-        objects = find_objects(graph, corners, up, cfg.objects)
-        structure = FrameStructure(
-            edges=edges,
-            graph=graph,
-            corners=corners,
-            objects=objects,
-            gravity_up_cam=up,
-            gravity_source=source,
-            reason=structure_reason(seg, edges, corners, cfg.intersections.min_angle_deg),
+        structure = build_structure(
+            seg, cfg.intersections, cfg.objects, lap=lambda: t.append(time.perf_counter())
         )
-        t.append(time.perf_counter())
         return FrameObservation(
             timestamp=timestamp,
             segmentation=seg,

@@ -47,6 +47,17 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
+def orthonormalize_pose(T: np.ndarray) -> np.ndarray:
+    """(4, 4) or (N, 4, 4) pose with its rotation projected onto SO(3) (nearest rotation by
+    SVD): chained products and solvers drift off orthonormality by ~1e-12 per step."""
+    T = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(T[..., :3, :3])
+    D = np.ones(T.shape[:-2] + (3,))
+    D[..., 2] = np.sign(np.linalg.det(U @ Vt))
+    T[..., :3, :3] = U @ (D[..., :, None] * Vt)
+    return T
+
+
 def transform_points(T_b_a: np.ndarray, points_a: np.ndarray) -> np.ndarray:
     """Map (N, 3) points from frame a to frame b with the (4, 4) pose T_b_a."""
     return points_a @ T_b_a[:3, :3].T + T_b_a[:3, 3]

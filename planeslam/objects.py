@@ -18,7 +18,7 @@ in no object.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -426,6 +426,7 @@ def build_structure(
     intersection_config: IntersectionConfig | None = None,
     object_config: ObjectConfig | None = None,
     patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
+    lap: Callable[[], None] | None = None,
 ) -> FrameStructure:
     """Edges, plane graph, corners and classified, sized objects of one frame.
 
@@ -434,16 +435,22 @@ def build_structure(
     `corners` (`find_corners`, which also snaps edge ends to their corners) and
     `objects` (`find_objects`). Degenerate input (no planes, one plane, only
     parallel planes, no corner) gives an empty or partial result whose
-    `reason` says why; it never raises for such frames.
+    `reason` says why; it never raises for such frames. `lap`, when given, is
+    called after each of the four stages (the front end times them with it).
     """
     icfg = intersection_config or IntersectionConfig()
     ocfg = object_config or ObjectConfig()
+    lap = lap or (lambda: None)
     edges = find_intersections(segmentation, icfg) if len(segmentation.planes) >= 2 else []
+    lap()
     up, source = gravity_up(segmentation, ocfg)
     graph = build_plane_graph(segmentation.planes, edges, up, ocfg.orientation_tol_deg)
+    lap()
     corners = find_corners(graph, ocfg.corner_min_det, ocfg.corner_tol_m)
     edges = snap_edges_to_corners(graph, corners, edges, ocfg.corner_tol_m)
+    lap()
     objects = find_objects(graph, corners, up, ocfg, patterns)
+    lap()
     return FrameStructure(
         edges=edges,
         graph=graph,

@@ -23,7 +23,7 @@ from pathlib import Path
 from planeslam.config import resolve_config, save_yaml
 from planeslam.dataset import TumDataset
 from planeslam.errors import ConfigError
-from planeslam.eval.metrics import RunMetrics, run_metrics, write_metrics
+from planeslam.eval.metrics import RunMetrics, slam_run_metrics, write_metrics
 from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_report
 from planeslam.slam import SLAM, RunSummary, run_frames
 from planeslam.trajectory import TumWriter, write_tum
@@ -140,20 +140,6 @@ def _write_final(slam: SLAM, out: Path, backend: str, summary: RunSummary | None
         os.replace(tmp, out / "trajectory.txt")
     slam.map.save(out / "map.json")
     slam.map.write_ply(out / "map.ply")
-    breakdown = slam.map.memory_bytes()
-    if summary is None:
-        metrics = run_metrics(frames=slam.frames, seconds=0.0)
-    else:
-        metrics = run_metrics(
-            frames=summary.frames,
-            seconds=summary.seconds,
-            frame_timings=summary.frame_timings,
-            map_bytes=breakdown["total"],
-            pointcloud_bytes=slam.pointcloud_bytes,
-            lost_frames=summary.lost_frames,
-            keyframes=summary.keyframes,
-            tracking_paths=summary.paths,
-            map_bytes_breakdown={k: v for k, v in breakdown.items() if k != "total"},
-        )
+    metrics = slam_run_metrics(slam, summary)
     write_metrics(metrics, out / "metrics.json")
     return metrics

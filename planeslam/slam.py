@@ -30,7 +30,7 @@ from planeslam.config import PlaneSlamConfig
 from planeslam.dataset import Frame, TumDataset
 from planeslam.errors import ConfigError, DatasetFormatError
 from planeslam.frontend import FrameObservation, FrontEnd
-from planeslam.geometry import invert_pose, transform_points
+from planeslam.geometry import invert_pose, orthonormalize_pose, transform_points
 from planeslam.map import Map
 from planeslam.odometry import RgbdOdometry
 from planeslam.tracking import MapView, Tracker, TrackResult
@@ -191,7 +191,7 @@ class SLAM:
             track = TrackResult(self._T_world_first, "first", "first frame")
         else:
             track = self.tracker.track(observation, self.map_view(), T_pred, rgb, depth_m)
-        T_world_cam = track.T_world_cam
+        T_world_cam = orthonormalize_pose(track.T_world_cam)
         stage_ms["tracking"] = 1e3 * (time.perf_counter() - t0)
 
         matched = {obs for obs, _ in track.plane_pairs}
@@ -285,6 +285,8 @@ class SLAM:
         by_planes = {tuple(sorted(c.planes)): cid for cid, c in self.map.corners.items()}
         ids = {}
         for k, corner in enumerate(observation.structure.corners):
+            if not all(i in planes for i in corner.planes):
+                continue
             key = tuple(sorted(planes[i] for i in corner.planes))
             if key in by_planes and len(set(key)) == 3:
                 ids[k] = by_planes[key]
@@ -341,7 +343,7 @@ class SLAM:
         ]
         return Trajectory(
             timestamps=np.asarray(self._stamps, dtype=np.float64),
-            T_world_cam=np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4),
+            T_world_cam=orthonormalize_pose(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)),
         )
 
 

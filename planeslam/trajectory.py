@@ -103,7 +103,7 @@ class TumWriter:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._fh: TextIO = open(self.path, "w", encoding="utf-8")
-        for line in (header.splitlines() if header else []):
+        for line in header.splitlines() if header else []:
             self._fh.write(f"# {line}\n")
         self._fh.write("# timestamp tx ty tz qx qy qz qw\n")
         self._fh.flush()

@@ -25,7 +25,8 @@ def test_help(command: str, capsys: pytest.CaptureFixture[str]) -> None:
 def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     result = subprocess.run(
         [sys.executable, "-m", "planeslam.cli", "eval", str(tmp_path / "gt.txt"), "x.txt"],
-        capture_output=True, text=True,
+        capture_output=True,
+        text=True,
     )
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0

@@ -30,9 +30,20 @@ def test_editable_install_imports_from_any_directory(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_wheel_contains_and_imports_the_subpackages(tmp_path: Path) -> None:
     subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "--no-build-isolation",
-         "-w", str(tmp_path), str(REPO)],
-        check=True, capture_output=True,
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(tmp_path),
+            str(REPO),
+        ],
+        check=True,
+        capture_output=True,
     )
     (wheel,) = tmp_path.glob("planeslam-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
@@ -48,7 +59,11 @@ def test_wheel_contains_and_imports_the_subpackages(tmp_path: Path) -> None:
     zipfile.ZipFile(wheel).extractall(site)
     env = {"PYTHONPATH": str(site), "PATH": "/usr/bin:/bin"}
     out = subprocess.run(
-        [sys.executable, "-c", PROBE], cwd=tmp_path, env=env, capture_output=True, text=True,
+        [sys.executable, "-c", PROBE],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
         check=True,
     ).stdout.split()
     assert out[:2] == ["factors", "eval"]
