@@ -580,6 +580,7 @@ class Tracker:
         return result
 
     def _track(self, frame, view, T_pred, cloud, rgbd) -> TrackResult:
+        """The paths of the module docstring, in order, on prepared inputs."""
         cfg = self.config
         if view.empty:
             return TrackResult(T_pred, "first", "empty map: the frame starts it")
