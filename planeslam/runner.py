@@ -53,10 +53,12 @@ class RunResult:
         ]
         if self.evaluation is not None:
             ev = self.evaluation.evaluation
-            lines.append(
-                f"ATE RMSE {ev.ate_rmse_m:.4f} m, RPE {ev.rpe_trans_m_per_s:.4f} m/s "
-                f"{ev.rpe_rot_deg_per_s:.3f} deg/s over {ev.pairs} poses"
+            rpe = (
+                f"RPE {ev.rpe_trans_m_per_s:.4f} m/s {ev.rpe_rot_deg_per_s:.3f} deg/s"
+                if ev.rpe_trans_m_per_s is not None
+                else "RPE not computed (sequence shorter than the RPE span)"
             )
+            lines.append(f"ATE RMSE {ev.ate_rmse_m:.4f} m, {rpe} over {ev.pairs} poses")
         lines.append(f"outputs in {self.out_dir} (open report.html)")
         return "\n".join(lines)
 

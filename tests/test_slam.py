@@ -133,3 +133,15 @@ def test_unknown_backend_and_bad_every(box_room: Path, tmp_path: Path) -> None:
         SLAM(resolve_config(box_room), "gtsam")
     with pytest.raises(ConfigError, match="--every must be >= 1"):
         run_sequence(box_room, tmp_path, every=0)
+
+
+@pytest.mark.data
+def test_run_on_a_short_real_clip(tmp_path: Path) -> None:
+    """TUM fr1/xyz, 10 frames (0.3 s): tracked on planes, evaluated; too short for RPE,
+    which the summary says instead of failing."""
+    from conftest import shared_sequence
+
+    result = run_sequence(shared_sequence("tum_fr1_xyz_10f"), tmp_path, backend="merge")
+    assert result.summary.lost_frames == 0
+    assert result.evaluation is not None and result.evaluation.evaluation.ate_rmse_m < 0.05
+    assert "RPE not computed" in result.text()
