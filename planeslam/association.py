@@ -27,6 +27,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from planeslam.errors import AssociationError
+from planeslam.geometry import as_pose
 
 logger = logging.getLogger(__name__)
 
@@ -64,15 +65,6 @@ def _offsets(name: str, d: np.ndarray, n: int) -> np.ndarray:
     if d.shape != (n,) or not np.all(np.isfinite(d)):
         raise AssociationError(f"{name} has shape {d.shape} or non-finite values, expected ({n},)")
     return d
-
-
-def _pose(T: np.ndarray) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise AssociationError(
-            f"T_map_obs has shape {T.shape} or non-finite values, expected (4, 4)"
-        )
-    return T
 
 
 def _gate(name: str, value: float) -> float:
@@ -134,7 +126,7 @@ def plane_association_cost(
     """
     n_map, n_obs = _vectors("n_map", n_map), _vectors("n_obs", n_obs)
     d_map, d_obs = _offsets("d_map", d_map, len(n_map)), _offsets("d_obs", d_obs, len(n_obs))
-    T = _pose(T_map_obs)
+    T = as_pose(T_map_obs, "T_map_obs", AssociationError)
     max_angle_rad, max_offset_m = (
         _gate("max_angle_rad", max_angle_rad),
         _gate("max_offset_m", max_offset_m),
@@ -385,7 +377,7 @@ def associate_with_corners(
             f"corner points ({len(x_obs)} obs, {len(x_map)} map) and corner planes "
             f"({len(cp_obs)} obs, {len(cp_map)} map) differ in count"
         )
-    T = _pose(T_map_obs)
+    T = as_pose(T_map_obs, "T_map_obs", AssociationError)
     max_angle_rad = _gate("max_angle_rad", max_angle_rad)
     max_corner_distance_m = _gate("max_corner_distance_m", max_corner_distance_m)
     n_map_u = n_map / np.linalg.norm(n_map, axis=1, keepdims=True)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from planeslam.errors import GeometryError
+from planeslam.errors import GeometryError, PlaneSlamError
 
 
 def pose_from_quat(t_xyz: np.ndarray, quat_xyzw: np.ndarray) -> np.ndarray:
@@ -45,6 +45,15 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     Ti[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, t)
     Ti[..., 3, 3] = 1.0
     return Ti
+
+
+def as_pose(T: np.ndarray, name: str, error: type[PlaneSlamError] = GeometryError) -> np.ndarray:
+    """T as a (4, 4) float64 array, or `error` naming `name` when it has another shape or
+    non-finite values (the one check every module applies to a pose argument)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise error(f"{name} has shape {T.shape} or non-finite values, expected (4, 4)")
+    return T
 
 
 def orthonormalize_pose(T: np.ndarray) -> np.ndarray:

@@ -122,9 +122,10 @@ class SLAM:
         """Per frame: the keyframe (frame index) its pose is expressed against."""
         self._T_anchor_cam: list[np.ndarray] = []
         """Per frame: pose relative to its anchor keyframe's online pose."""
-        self._online: list[np.ndarray] = []
         self._keyframe_online: dict[int, np.ndarray] = {}
+        """Keyframe pose when it was added (tracked, or optimised by its own update)."""
         self._keyframe_final: dict[int, np.ndarray] = {}
+        """Keyframe pose after the last optimisation (`finish`); the online one until then."""
         self._last_keyframe: int | None = None
         self._velocity = np.eye(4)
         """Last motion T_prev_cur of tracked frames (constant-velocity prediction)."""
@@ -244,7 +245,6 @@ class SLAM:
                 corner_ids,
                 odometry,
             )
-            self._keyframe_final[index] = T_world_cam
             # The planes and corners this keyframe saw follow their landmarks now (tracking
             # uses them next); the whole map and its objects are rebuilt in `finish`.
             self._update_map_geometry(planes.values(), corner_ids.values(), reaggregate=False)
@@ -307,16 +307,13 @@ class SLAM:
             if self._last_tracked is not None:
                 self._velocity = invert_pose(self._last_tracked) @ T_world_cam
             self._last_tracked = T_world_cam
-        if keyframe:
+        if keyframe:  # the first frame always is one, so every frame has an anchor
             self._last_keyframe = index
-            self._keyframe_online[index] = T_world_cam
-            self._keyframe_final.setdefault(index, T_world_cam)
-        anchor = self._last_keyframe if self._last_keyframe is not None else index
-        T_anchor = self._keyframe_online.get(anchor, T_world_cam)
+            self._keyframe_online[index] = self._keyframe_final[index] = T_world_cam
+        anchor = self._last_keyframe
         self._stamps.append(float(timestamp))
         self._anchor.append(anchor)
-        self._T_anchor_cam.append(invert_pose(T_anchor) @ T_world_cam)
-        self._online.append(T_world_cam)
+        self._T_anchor_cam.append(invert_pose(self._keyframe_online[anchor]) @ T_world_cam)
 
     def finish(self) -> float:
         """End of the sequence. With iSAM2: a batch optimisation of the whole graph
@@ -338,12 +335,12 @@ class SLAM:
     def trajectory(self) -> Trajectory:
         """Every processed frame's pose, each re-anchored on its optimised keyframe."""
         poses = [
-            self._keyframe_final.get(a, self._online[a]) @ T
+            self._keyframe_final[a] @ T
             for a, T in zip(self._anchor, self._T_anchor_cam, strict=True)
         ]
         return Trajectory(
             timestamps=np.asarray(self._stamps, dtype=np.float64),
-            T_world_cam=orthonormalize_pose(np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)),
+            T_world_cam=np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4),
         )
 
 

@@ -296,6 +296,7 @@ class Tracker:
         self.config = config
         self.odometry = odometry
         self._previous_cloud: np.ndarray | None = None
+        """(H, W, 3) organised cloud of the last tracked frame (ICP fallback)."""
         self._previous_rgbd = None
         self._T_world_previous: np.ndarray | None = None
         self.lost_streak = 0
@@ -514,23 +515,28 @@ class Tracker:
 
     # -------------------------------------------------------------------------- points
 
-    def _cloud(self, observation: FrameObservation) -> np.ndarray:
-        """(P, 3) camera-frame points of the frame for ICP, subsampled by icp_stride."""
+    def _points(self, cloud: np.ndarray) -> np.ndarray:
+        """(P, 3) float64 valid camera-frame points of an (H, W, 3) organised cloud for ICP,
+        every icp_stride-th pixel in each direction."""
         s, cfg = self.config.icp_stride, self.config
-        xyz = observation.cloud[::s, ::s].reshape(-1, 3)
+        xyz = cloud[::s, ::s].reshape(-1, 3)
         keep = (xyz[:, 2] > 0) & (xyz[:, 2] < cfg.max_depth_m) & np.all(np.isfinite(xyz), axis=1)
         return np.ascontiguousarray(xyz[keep], dtype=np.float64)
 
     def _icp(self, cloud: np.ndarray, T_world_cam_init: np.ndarray) -> np.ndarray | None:
-        """T_world_cam by ICP of this frame's cloud against the previous frame's, or None."""
+        """T_world_cam by ICP of this frame's (H, W, 3) organised cloud against the previous
+        frame's, or None. The point sets are only built here: ICP is a rare fallback."""
         cfg = self.config
-        if self._previous_cloud is None or len(cloud) < 100 or len(self._previous_cloud) < 100:
+        if self._previous_cloud is None:
+            return None
+        source, target = self._points(cloud), self._points(self._previous_cloud)
+        if len(source) < 100 or len(target) < 100:
             return None
         T_prev_world = invert_pose(self._T_world_previous)
         try:
             icp = refine_icp(
-                cloud,
-                self._previous_cloud,
+                source,
+                target,
                 T_prev_world @ T_world_cam_init,
                 cfg.icp_max_distance_m,
                 cfg.icp_voxel_m,
@@ -569,7 +575,7 @@ class Tracker:
         T_pred (4, 4) T_world_cam; colour and depth enable the RGB-D odometry fallback."""
         cfg = self.config
         frame = FrameView.of(observation)
-        cloud = self._cloud(observation) if cfg.icp else None
+        cloud = observation.cloud if cfg.icp else None
         need_rgbd = cfg.rgbd_odometry and self.odometry is not None and rgb is not None
         rgbd = (rgb, depth_m) if need_rgbd else None
         result = self._track(frame, view, T_pred, cloud, rgbd)
@@ -633,9 +639,13 @@ class Tracker:
         return TrackResult(T_pred, "lost", "; ".join(reasons))
 
     def _result(self, frame, view, reg, path, reason, T=None) -> TrackResult:
-        """TrackResult with the correspondences under the final pose T (default reg's)."""
-        T_final = T if T is not None else reg[0].T
-        assoc = self._associate(frame, view, T_final)
+        """TrackResult with the correspondences of the final pose: those the plane pose was
+        solved from (outliers dropped), or, when a fallback moved the pose to T, those
+        under T."""
+        if T is None:
+            T_final, assoc = reg[0].T, reg[1]
+        else:
+            T_final, assoc = T, self._associate(frame, view, T)
         return TrackResult(
             T_world_cam=T_final,
             path=path,
