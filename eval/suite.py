@@ -116,11 +116,11 @@ def _open3d_odometry(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
 
 def _slam_method(backend: str) -> Method:
     def run(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
-        from planeslam.config import resolve_config
+        from planeslam.runner import frame_indices
         from planeslam.slam import SLAM, run_frames
 
         config = resolve_config(dataset.root, spec.config)
-        indices = list(range(0, len(dataset), spec.every))[: spec.max_frames]
+        indices = frame_indices(len(dataset), spec.max_frames, spec.every)
         slam = SLAM(
             config, backend, T_world_first=dataset.groundtruth_pose(dataset.timestamps[indices[0]])
         )

@@ -24,7 +24,6 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
 from planeslam.errors import AssociationError
 from planeslam.geometry import as_pose
@@ -162,6 +161,8 @@ def plane_association_cost(
 
 def _assign(cost: np.ndarray, allowed: np.ndarray) -> list[tuple[int, int]]:
     """One-to-one minimum-cost pairs among allowed ones (rows, cols)."""
+    from scipy.optimize import linear_sum_assignment  # 0.3 s to import: not at start-up
+
     if cost.size == 0 or not allowed.any():
         return []
     rows, cols = linear_sum_assignment(np.where(allowed, cost, _FORBIDDEN))

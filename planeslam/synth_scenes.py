@@ -23,7 +23,7 @@ from __future__ import annotations
 import itertools
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -206,22 +206,19 @@ class Scene:
 
     def plane_by_name(self, name: str) -> ScenePlane:
         """The plane called `name`; ConfigError listing the names when absent."""
-        for plane in self.planes:
-            if plane.name == name:
-                return plane
-        raise ConfigError(
-            f"scene {self.name!r} has no plane {name!r}; planes: "
-            + ", ".join(p.name for p in self.planes)
-        )
+        return self._by_name(self.planes, "plane", name)
 
     def object_by_name(self, name: str) -> SceneObject:
         """The object called `name`; ConfigError listing the names when absent."""
-        for obj in self.objects:
-            if obj.name == name:
-                return obj
+        return self._by_name(self.objects, "object", name)
+
+    def _by_name(self, items: tuple[Any, ...], kind: str, name: str) -> Any:
+        for item in items:
+            if item.name == name:
+                return item
         raise ConfigError(
-            f"scene {self.name!r} has no object {name!r}; objects: "
-            + ", ".join(o.name for o in self.objects)
+            f"scene {self.name!r} has no {kind} {name!r}; {kind}s: "
+            + ", ".join(i.name for i in items)
         )
 
 
