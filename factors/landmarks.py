@@ -39,7 +39,7 @@ import numpy as np
 
 from planeslam.association import associate_with_corners
 from planeslam.errors import AssociationError, ConfigError, GeometryError
-from planeslam.geometry import angle_between, transform_plane, transform_points
+from planeslam.geometry import angle_between, as_pose, transform_plane, transform_points
 
 from .corner_observation import corner_factor
 from .keys import LandmarkKeys
@@ -243,7 +243,7 @@ class PlaneLandmarks:
             max_corner_distance_m = cfg.associate_max_corner_distance_m
         planes = list(observation.segmentation.planes)
         corners = list(observation.structure.corners) if cfg.use_corners else []
-        T = _pose_matrix(T_world_cam_pred, "T_world_cam_pred")
+        T = as_pose(T_world_cam_pred, "T_world_cam_pred")
         map_ids = self.plane_ids
         row_of = {j: r for r, j in enumerate(map_ids)}
         map_corner_ids = [
@@ -317,7 +317,7 @@ class PlaneLandmarks:
         AssociationError when two observed planes (or corners) map to one landmark.
         """
         cfg = self.config
-        T = _pose_matrix(T_world_cam, "T_world_cam")
+        T = as_pose(T_world_cam, "T_world_cam")
         plane_ids = {int(i): int(j) for i, j in plane_ids.items()}
         corner_ids = {int(i): int(k) for i, k in (corner_ids or {}).items()}
         _check_one_to_one(plane_ids, "plane_ids")
@@ -445,13 +445,6 @@ class PlaneLandmarks:
             [self.config.plane_sigma_floor_rad] * 2 + [self.config.plane_sigma_floor_m]
         )
         return 0.5 * (cov + cov.T) + np.diag(floor**2)
-
-
-def _pose_matrix(T: np.ndarray, name: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise GeometryError(f"{name} of shape {T.shape}: expected a finite (4, 4) pose")
-    return T
 
 
 def _check_one_to_one(ids: dict[int, int], name: str) -> None:

@@ -30,46 +30,39 @@ from planeslam.errors import ConfigError, GeometryError
 from ._noise import distinct_keys, isotropic_noise
 
 
-def orthogonal_planes_factor(key_a: int, key_b: int, sigma: float) -> gtsam.CustomFactor:
-    """Planes `key_a` and `key_b` are perpendicular; sigma [rad] on n_a . n_b."""
+def _normal_pair_factor(
+    key_a: int, key_b: int, sigma: float, relation: str, dim: int
+) -> gtsam.CustomFactor:
+    """CustomFactor on two plane landmarks whose error is `Unit3.<relation>` of their
+    normals ('dot': (1,), 'errorVector': (2,)), chained through `OrientedPlane3.normal`."""
     key_a, key_b = distinct_keys(key_a, key_b)
 
     def error(_: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
         plane_a = values.atOrientedPlane3(key_a)
         plane_b = values.atOrientedPlane3(key_b)
         if H is None:
-            return np.array([plane_a.normal().dot(plane_b.normal())])
+            return np.atleast_1d(getattr(plane_a.normal(), relation)(plane_b.normal()))
         na_H_a = np.zeros((2, 3), order="F")
         nb_H_b = np.zeros((2, 3), order="F")
-        e_H_na = np.zeros((1, 2), order="F")
-        e_H_nb = np.zeros((1, 2), order="F")
-        e = plane_a.normal(na_H_a).dot(plane_b.normal(nb_H_b), e_H_na, e_H_nb)
+        e_H_na = np.zeros((dim, 2), order="F")
+        e_H_nb = np.zeros((dim, 2), order="F")
+        na, nb = plane_a.normal(na_H_a), plane_b.normal(nb_H_b)
+        e = getattr(na, relation)(nb, e_H_na, e_H_nb)
         H[0] = e_H_na @ na_H_a
         H[1] = e_H_nb @ nb_H_b
-        return np.array([e])
+        return np.atleast_1d(e)
 
-    return gtsam.CustomFactor(isotropic_noise(sigma, 1), [key_a, key_b], error)
+    return gtsam.CustomFactor(isotropic_noise(sigma, dim), [key_a, key_b], error)
+
+
+def orthogonal_planes_factor(key_a: int, key_b: int, sigma: float) -> gtsam.CustomFactor:
+    """Planes `key_a` and `key_b` are perpendicular; sigma [rad] on n_a . n_b."""
+    return _normal_pair_factor(key_a, key_b, sigma, "dot", 1)
 
 
 def parallel_planes_factor(key_a: int, key_b: int, sigma: float) -> gtsam.CustomFactor:
     """Planes `key_a` and `key_b` are parallel (normals agreeing or opposite); sigma [rad]."""
-    key_a, key_b = distinct_keys(key_a, key_b)
-
-    def error(_: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
-        plane_a = values.atOrientedPlane3(key_a)
-        plane_b = values.atOrientedPlane3(key_b)
-        if H is None:
-            return plane_a.normal().errorVector(plane_b.normal())
-        na_H_a = np.zeros((2, 3), order="F")
-        nb_H_b = np.zeros((2, 3), order="F")
-        e_H_na = np.zeros((2, 2), order="F")
-        e_H_nb = np.zeros((2, 2), order="F")
-        e = plane_a.normal(na_H_a).errorVector(plane_b.normal(nb_H_b), e_H_na, e_H_nb)
-        H[0] = e_H_na @ na_H_a
-        H[1] = e_H_nb @ nb_H_b
-        return e
-
-    return gtsam.CustomFactor(isotropic_noise(sigma, 2), [key_a, key_b], error)
+    return _normal_pair_factor(key_a, key_b, sigma, "errorVector", 2)
 
 
 def structural_factor(

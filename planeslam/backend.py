@@ -31,7 +31,7 @@ import numpy as np
 from planeslam.errors import ConfigError, GeometryError
 from planeslam.factors.keys import LandmarkKeys
 from planeslam.factors.landmarks import AddedFactors, LandmarkConfig, PlaneLandmarks
-from planeslam.geometry import invert_pose
+from planeslam.geometry import as_pose, invert_pose
 
 if TYPE_CHECKING:
     from planeslam.frontend import FrameObservation
@@ -156,7 +156,7 @@ class Isam2Backend:
         `keyframe_min_rotation_deg`, or is `keyframe_max_frames` frames after it.
         """
         cfg = self.config
-        T_rel = invert_pose(_pose_matrix(T_last_kf, "T_last_kf")) @ _pose_matrix(T_now, "T_now")
+        T_rel = invert_pose(as_pose(T_last_kf, "T_last_kf")) @ as_pose(T_now, "T_now")
         cos = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
         return bool(
             frames_since >= cfg.keyframe_max_frames
@@ -194,7 +194,7 @@ class Isam2Backend:
             raise ConfigError(
                 f"keyframe index {index}: expected > the previous keyframe {self._last_index}"
             )
-        T_guess = _pose_matrix(T_world_cam_guess, "T_world_cam_guess")
+        T_guess = as_pose(T_world_cam_guess, "T_world_cam_guess")
         pose_key = self.keys.pose(index)
         pose_graph = gtsam.NonlinearFactorGraph()
         if self._last_index is None:
@@ -211,7 +211,7 @@ class Isam2Backend:
                 T_prev = self._estimate.atPose3(prev_key).matrix()
                 T_prev_cur = invert_pose(T_prev) @ T_guess
             else:
-                T_prev_cur = _pose_matrix(odometry_T_prev_cur, "odometry_T_prev_cur")
+                T_prev_cur = as_pose(odometry_T_prev_cur, "odometry_T_prev_cur")
             pose_graph.add(
                 gtsam.BetweenFactorPose3(
                     prev_key,
@@ -359,10 +359,3 @@ def _positive(value: float, name: str) -> None:
         isinstance(value, (int, float)) and math.isfinite(value) and value > 0
     ):
         raise ConfigError(f"{name}={value!r}: expected a finite number > 0")
-
-
-def _pose_matrix(T: np.ndarray, name: str) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise GeometryError(f"{name} of shape {T.shape}: expected a finite (4, 4) pose")
-    return T

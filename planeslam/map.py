@@ -53,7 +53,7 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from planeslam.errors import AssociationError, ConfigError, GeometryError, PlaneSlamError
-from planeslam.geometry import intersect_three_planes, transform_plane
+from planeslam.geometry import as_pose, intersect_three_planes, transform_plane
 from planeslam.objects import (
     DEFAULT_PATTERNS,
     MAP_SCHEMA,
@@ -274,9 +274,7 @@ def _floats(a: Any) -> list[Any]:
 
 
 def _pose(T: np.ndarray) -> np.ndarray:
-    T = np.asarray(T, dtype=np.float64)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise MapError(f"T_world_cam has shape {T.shape} or non-finite values, expected (4, 4)")
+    T = as_pose(T, "T_world_cam", MapError)
     R = T[:3, :3]
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
         raise MapError("T_world_cam's rotation block is not a rotation matrix")

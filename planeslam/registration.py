@@ -36,6 +36,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from planeslam.errors import GeometryError
+from planeslam.geometry import as_pose
 
 logger = logging.getLogger(__name__)
 
@@ -134,14 +135,7 @@ def _unit_normals(name: str, n: np.ndarray) -> np.ndarray:
 
 
 def _as_prior(T_prior: np.ndarray | None) -> np.ndarray:
-    if T_prior is None:
-        return np.eye(4)
-    T_prior = np.asarray(T_prior, dtype=np.float64)
-    if T_prior.shape != (4, 4) or not np.all(np.isfinite(T_prior)):
-        raise GeometryError(
-            f"T_prior has shape {T_prior.shape} or non-finite values, expected (4, 4)"
-        )
-    return T_prior
+    return np.eye(4) if T_prior is None else as_pose(T_prior, "T_prior")
 
 
 def _positive(name: str, value: float) -> float:
@@ -449,11 +443,7 @@ def refine_icp(
     reg = o3d.pipelines.registration
     src = _as_vectors("source_points", source_points)
     tgt = _as_vectors("target_points", target_points)
-    T_init = np.asarray(T_init, dtype=np.float64)
-    if T_init.shape != (4, 4) or not np.all(np.isfinite(T_init)):
-        raise GeometryError(
-            f"T_init has shape {T_init.shape} or non-finite values, expected (4, 4)"
-        )
+    T_init = as_pose(T_init, "T_init")
     max_distance_m = _positive("max_distance_m", max_distance_m)
     if method not in ("point_to_plane", "point_to_point"):
         raise GeometryError(
