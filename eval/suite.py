@@ -116,8 +116,7 @@ def _open3d_odometry(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
 
 def _slam_method(backend: str) -> Method:
     def run(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
-        from planeslam.runner import frame_indices
-        from planeslam.slam import SLAM, run_frames
+        from planeslam.slam import SLAM, frame_indices, run_frames
 
         config = resolve_config(dataset.root, spec.config)
         indices = frame_indices(len(dataset), spec.max_frames, spec.every)

@@ -25,7 +25,7 @@ from planeslam.dataset import TumDataset
 from planeslam.errors import ConfigError
 from planeslam.eval.metrics import RunMetrics, slam_run_metrics, write_metrics
 from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_report
-from planeslam.slam import SLAM, RunSummary, run_frames
+from planeslam.slam import SLAM, RunSummary, frame_indices, run_frames
 from planeslam.trajectory import TumWriter, write_tum
 
 logger = logging.getLogger(__name__)
@@ -61,15 +61,6 @@ class RunResult:
             lines.append(f"ATE RMSE {ev.ate_rmse_m:.4f} m, {rpe} over {ev.pairs} poses")
         lines.append(f"outputs in {self.out_dir} (open report.html)")
         return "\n".join(lines)
-
-
-def frame_indices(num_frames: int, max_frames: int | None, every: int) -> list[int]:
-    """Every `every`-th frame index, at most `max_frames` of them."""
-    if every < 1:
-        raise ConfigError(f"--every must be >= 1, got {every}")
-    if max_frames is not None and max_frames < 1:
-        raise ConfigError(f"--max-frames must be >= 1, got {max_frames}")
-    return list(range(0, num_frames, every))[:max_frames]
 
 
 def run_sequence(

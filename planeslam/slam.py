@@ -361,6 +361,15 @@ class RunSummary:
     """`SLAM.finish` (final batch optimisation), included in `seconds`."""
 
 
+def frame_indices(num_frames: int, max_frames: int | None, every: int) -> list[int]:
+    """Every `every`-th frame index, at most `max_frames` of them."""
+    if every < 1:
+        raise ConfigError(f"--every must be >= 1, got {every}")
+    if max_frames is not None and max_frames < 1:
+        raise ConfigError(f"--max-frames must be >= 1, got {max_frames}")
+    return list(range(0, num_frames, every))[:max_frames]
+
+
 def _read(dataset: TumDataset, index: int) -> tuple[Frame, float]:
     t0 = time.perf_counter()
     frame = dataset[index]
