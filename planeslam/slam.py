@@ -154,14 +154,14 @@ class SLAM:
         area = np.array([planes[int(i)].area_m2 for i in ids], dtype=np.float64)
         return MapView(ids, normals, d, corner_ids, corner_planes, corner_points, convex, area)
 
-    def _is_keyframe(self, T_world_cam: np.ndarray, unmatched_planes: int) -> bool:
+    def _is_keyframe(self, T_world_cam: np.ndarray, new_planes: int) -> bool:
         if self._last_keyframe is None:
             return True
         if self.backend is None:
             return True  # the paper merges every frame
         T_kf = self._keyframe_online[self._last_keyframe]
         since = self.frames - self._last_keyframe
-        new_structure = unmatched_planes >= self.config.backend.keyframe_new_planes
+        new_structure = new_planes >= self.config.backend.keyframe_new_planes
         return self.backend.is_keyframe(T_kf, T_world_cam, since) or new_structure
 
     # -------------------------------------------------------------------------- frames
@@ -195,9 +195,7 @@ class SLAM:
         T_world_cam = orthonormalize_pose(track.T_world_cam)
         stage_ms["tracking"] = 1e3 * (time.perf_counter() - t0)
 
-        matched = {obs for obs, _ in track.plane_pairs}
-        unmatched = len(observation.segmentation.planes) - len(matched)
-        keyframe = track.path in MAPPING_PATHS and self._is_keyframe(T_world_cam, unmatched)
+        keyframe = track.path in MAPPING_PATHS and self._is_keyframe(T_world_cam, track.new_planes)
         if keyframe:
             T_world_cam = self._add_keyframe(index, timestamp, observation, track, rgb, stage_ms)
         self._remember(index, timestamp, T_world_cam, keyframe, track.lost)

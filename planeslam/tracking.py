@@ -38,7 +38,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from planeslam.association import Association, associate_with_corners
+from planeslam.association import Association, associate_with_corners, plane_association_cost
 from planeslam.errors import ConfigError, GeometryError
 from planeslam.geometry import invert_pose
 from planeslam.registration import (
@@ -242,6 +242,9 @@ class TrackResult:
     """(observed plane id, map plane id) correspondences under the final pose."""
     corner_pairs: list[tuple[int, int]] = field(default_factory=list)
     """(observed corner index, map corner id) correspondences under the final pose."""
+    new_planes: int = 0
+    """Observed planes with no map plane within the association gates under the final pose
+    (structure the map does not have yet; an outlier of the pose solve does not count)."""
 
     @property
     def lost(self) -> bool:
@@ -646,6 +649,17 @@ class Tracker:
             T_final, assoc = reg[0].T, reg[1]
         else:
             T_final, assoc = T, self._associate(frame, view, T)
+        cfg = self.config
+        _, allowed = plane_association_cost(
+            view.normals,
+            view.d,
+            frame.normals,
+            frame.d,
+            T_final,
+            np.radians(cfg.max_angle_deg),
+            cfg.max_offset_m,
+            gate=self._size_gate(frame, view),
+        )
         return TrackResult(
             T_world_cam=T_final,
             path=path,
@@ -654,4 +668,5 @@ class Tracker:
                 (int(frame.plane_ids[i]), int(view.plane_ids[j])) for i, j in assoc.planes
             ],
             corner_pairs=[(int(i), int(view.corner_ids[j])) for i, j in assoc.corners],
+            new_planes=int(np.count_nonzero(~allowed.any(axis=1))),
         )
