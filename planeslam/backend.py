@@ -112,7 +112,7 @@ class Isam2Backend:
         self._params = gtsam.ISAM2Params()
         self._params.setRelinearizeThreshold(self.config.relinearize_threshold)
         self._params.relinearizeSkip = self.config.relinearize_skip
-        self._isam = gtsam.ISAM2(self._params)
+        self._isam, self._theta = _new_isam2(self._params)
         self._graph = gtsam.NonlinearFactorGraph()  # every committed factor, for rebuilds
         self._estimate = gtsam.Values()
         self._timestamps: dict[int, float] = {}
@@ -323,29 +323,51 @@ class Isam2Backend:
             return factors
 
     def optimize_batch(self, max_iterations: int = 20) -> float:
-        """Levenberg-Marquardt on every committed factor from the current estimate (the
-        final global optimisation of a run: iSAM2 relinearises lazily online). Updates the
-        estimate, the landmark table and the smoother; returns the wall-clock ms."""
-        if not self._graph.size():
+        """Gauss-Newton on every committed factor from the current estimate (the final
+        global optimisation of a run: iSAM2 relinearises lazily online): a fresh iSAM2
+        that relinearises every variable on each of its `max_iterations` updates. Updates
+        the estimate, the landmark table and the smoother; returns the wall-clock ms.
+
+        Not gtsam's batch optimisers: they hand the Python factors a copy of the whole
+        Values per call (O(variables) each), iSAM2 hands them its held linearisation point.
+        """
+        if not self._graph.size() or max_iterations < 1:
             return 0.0
         start = time.perf_counter()
-        params = gtsam.LevenbergMarquardtParams()
-        params.setMaxIterations(int(max_iterations))
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.0)
+        params.relinearizeSkip = 1
+        isam, _theta = _new_isam2(params)  # the handle lives as long as `isam` here
         try:
-            result = gtsam.LevenbergMarquardtOptimizer(self._graph, self._estimate, params)
-            self._estimate = result.optimize()
+            isam.update(self._graph, self._estimate)
+            for _ in range(int(max_iterations) - 1):
+                isam.update()
+            estimate = isam.calculateEstimate()
         except RuntimeError as exc:  # an indeterminate batch keeps the iSAM2 estimate
             logger.warning("batch optimisation failed (%s); keeping the iSAM2 estimate", exc)
             return (time.perf_counter() - start) * 1e3
+        self._estimate = estimate
         self.landmarks.update_estimates(self._estimate)
         self._rebuild()
         return (time.perf_counter() - start) * 1e3
 
     def _rebuild(self) -> None:
         """A fresh iSAM2 from the committed factors, linearised at the last estimate."""
-        self._isam = gtsam.ISAM2(self._params)
+        self._isam, self._theta = _new_isam2(self._params)
         if self._graph.size():
             self._isam.update(self._graph, self._estimate)
+
+
+def _new_isam2(params: gtsam.ISAM2Params) -> tuple[gtsam.ISAM2, gtsam.Values]:
+    """An ISAM2 and a Python handle on its linearisation point, to be kept as long as it.
+
+    pybind11 copies a C++ `const Values&` into a new Python object for every call of a
+    Python factor (`CustomFactor`) unless a Python object for that very Values exists:
+    without the handle each robust plane, corner and structural factor copies the whole
+    estimate each time iSAM2 linearises it, which made updates O(map size) per factor.
+    """
+    isam = gtsam.ISAM2(params)
+    return isam, isam.getLinearizationPoint()
 
 
 def _value_of(values: gtsam.Values, key: int, keys: LandmarkKeys):
