@@ -76,6 +76,13 @@ class BackendConfig:
     """A frame this many frames after the last keyframe becomes a keyframe."""
     keyframe_new_planes: int = 4
     """A frame with this many planes the map does not have yet becomes a keyframe."""
+    lag_frames: int = 3
+    """A keyframe's result is applied to the map and poses before tracking the frame this
+    many frames after it (or the next keyframe, if sooner): the smoother works on it
+    while the front end processes those frames. 0: at once (no overlap)."""
+    run_in_process: bool = True
+    """Run iSAM2 in a child process, on another core, beside tracking; false runs it
+    inline (the same results on one core)."""
 
     def __post_init__(self) -> None:
         for name in (
@@ -93,6 +100,7 @@ class BackendConfig:
         for name, low in (
             ("relinearize_skip", 1),
             ("extra_updates", 0),
+            ("lag_frames", 0),
             ("final_iterations", 0),
             ("keyframe_max_frames", 1),
             ("keyframe_new_planes", 1),
@@ -100,6 +108,23 @@ class BackendConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ConfigError(f"backend.{name}={value!r}: expected a whole number >= {low}")
+
+
+def is_keyframe(
+    config: BackendConfig, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int
+) -> bool:
+    """Whether a frame at T_now (4, 4) becomes a keyframe after the one at T_last_kf (4, 4).
+
+    True when it moved at least `keyframe_min_translation_m`, turned at least
+    `keyframe_min_rotation_deg`, or is `keyframe_max_frames` frames after it.
+    """
+    T_rel = invert_pose(as_pose(T_last_kf, "T_last_kf")) @ as_pose(T_now, "T_now")
+    cos = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(
+        frames_since >= config.keyframe_max_frames
+        or np.linalg.norm(T_rel[:3, 3]) >= config.keyframe_min_translation_m
+        or math.degrees(math.acos(cos)) >= config.keyframe_min_rotation_deg
+    )
 
 
 class Isam2Backend:
@@ -148,21 +173,6 @@ class Isam2Backend:
     def corner_estimates(self) -> dict[int, np.ndarray]:
         """Corner landmark id -> p_world (3,) [m], optimised."""
         return self.landmarks.corner_estimates()
-
-    def is_keyframe(self, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int) -> bool:
-        """Whether a frame at T_now (4, 4) becomes a keyframe after the one at T_last_kf (4, 4).
-
-        True when it moved at least `keyframe_min_translation_m`, turned at least
-        `keyframe_min_rotation_deg`, or is `keyframe_max_frames` frames after it.
-        """
-        cfg = self.config
-        T_rel = invert_pose(as_pose(T_last_kf, "T_last_kf")) @ as_pose(T_now, "T_now")
-        cos = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-        return bool(
-            frames_since >= cfg.keyframe_max_frames
-            or np.linalg.norm(T_rel[:3, 3]) >= cfg.keyframe_min_translation_m
-            or math.degrees(math.acos(cos)) >= cfg.keyframe_min_rotation_deg
-        )
 
     # ------------------------------------------------------------------ update
 

@@ -22,19 +22,24 @@ import logging
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from planeslam.backend import is_keyframe
 from planeslam.config import PlaneSlamConfig
 from planeslam.dataset import Frame, TumDataset
 from planeslam.errors import ConfigError, DatasetFormatError
 from planeslam.frontend import FrameObservation, FrontEnd
 from planeslam.geometry import invert_pose, orthonormalize_pose, transform_points
 from planeslam.map import Map
+from planeslam.native_threads import single_native_threads
 from planeslam.odometry import RgbdOdometry
 from planeslam.tracking import MapView, Tracker, TrackResult
 from planeslam.trajectory import Trajectory
+
+if TYPE_CHECKING:
+    from planeslam.backend_worker import KeyframeUpdate
 
 logger = logging.getLogger(__name__)
 
@@ -113,9 +118,9 @@ class SLAM:
         self.map = Map(config.map, config.objects)
         self.backend = None
         if backend == "isam2":
-            from planeslam.backend import Isam2Backend
+            from planeslam.backend_worker import BackendWorker
 
-            self.backend = Isam2Backend(config.backend)
+            self.backend = BackendWorker(config.backend, inline=not config.backend.run_in_process)
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first)
         self._stamps: list[float] = []
         self._anchor: list[int] = []
@@ -130,6 +135,12 @@ class SLAM:
         self._velocity = np.eye(4)
         """Last motion T_prev_cur of tracked frames (constant-velocity prediction)."""
         self._last_tracked: np.ndarray | None = None
+        self._pending: tuple[int, list[int], list[int]] | None = None
+        """The keyframe in the backend whose result is not applied yet: (frame index, map
+        plane ids, map corner ids it saw). One at most: a keyframe merged into the map
+        before the previous one's correction would stay uncorrected there."""
+        self.backend_result = None
+        """`BackendResult` of `finish` (iSAM2): update times, failures, factors."""
         self.pointcloud_bytes = 0
         """Bytes of the point cloud of every processed frame (valid depth x POINT_BYTES)."""
 
@@ -162,7 +173,7 @@ class SLAM:
         T_kf = self._keyframe_online[self._last_keyframe]
         since = self.frames - self._last_keyframe
         new_structure = new_planes >= self.config.backend.keyframe_new_planes
-        return self.backend.is_keyframe(T_kf, T_world_cam, since) or new_structure
+        return is_keyframe(self.config.backend, T_kf, T_world_cam, since) or new_structure
 
     # -------------------------------------------------------------------------- frames
 
@@ -185,6 +196,11 @@ class SLAM:
         index = self.frames
         observation = self.front_end.process(depth_m, timestamp)
         stage_ms = dict(observation.stage_ms)
+
+        if self._pending and index - self._pending[0] >= self.config.backend.lag_frames:
+            t0 = time.perf_counter()
+            self._apply_update(self.backend.collect())
+            stage_ms["backend"] = 1e3 * (time.perf_counter() - t0)
 
         t0 = time.perf_counter()
         T_pred = self.predicted_pose()
@@ -215,8 +231,15 @@ class SLAM:
         )
 
     def _add_keyframe(self, index, timestamp, observation, track, rgb, stage_ms) -> np.ndarray:
-        """Merge the frame into the map and, with iSAM2, optimise; returns its pose."""
+        """Merge the frame into the map and, with iSAM2, hand it to the smoother (after
+        applying the previous keyframe's result if it is still pending). Returns the
+        frame's pose: corrected by that result, or with `lag_frames` 0 the optimised one."""
         T_world_cam = track.T_world_cam
+        if self._pending:
+            t0 = time.perf_counter()
+            correction = self._apply_update(self.backend.collect())
+            T_world_cam = orthonormalize_pose(correction @ T_world_cam)
+            stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
         planes = self.map.merge(
             observation,
@@ -228,29 +251,44 @@ class SLAM:
         self._add_sparse_points(observation, T_world_cam, rgb)
         stage_ms["map"] = 1e3 * (time.perf_counter() - t0)
         if self.backend is not None:
-            t1 = time.perf_counter()
+            t0 = time.perf_counter()
             corner_ids = self._corner_ids(observation, planes)
-            odometry = None
+            odometry = None  # measured motion since the last keyframe
             if self._last_keyframe is not None:
-                T_prev = self._keyframe_online[self._last_keyframe]
-                odometry = invert_pose(T_prev) @ T_world_cam
-            T_world_cam = self.backend.add_keyframe(
-                index,
-                timestamp,
-                T_world_cam,
-                observation,
-                planes,
-                corner_ids,
-                odometry,
+                odometry = invert_pose(self._keyframe_online[self._last_keyframe]) @ T_world_cam
+            self.backend.submit(
+                index, timestamp, T_world_cam, observation, planes, corner_ids, odometry
             )
-            # The planes and corners this keyframe saw follow their landmarks now (tracking
-            # uses them next); the whole map and its objects are rebuilt in `finish`.
-            self._update_map_geometry(planes.values(), corner_ids.values(), reaggregate=False)
-            stage_ms["backend"] = 1e3 * (time.perf_counter() - t1)
+            self._keyframe_online[index] = T_world_cam
+            self._pending = (index, list(planes.values()), list(corner_ids.values()))
+            if self.config.backend.lag_frames == 0:
+                self._apply_update(self.backend.collect(), move_last_tracked=False)
+                T_world_cam = self._keyframe_online[index]
+            stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         return T_world_cam
+
+    def _apply_update(self, update: KeyframeUpdate, move_last_tracked: bool = True) -> np.ndarray:
+        """The pending keyframe's result: its pose becomes the optimised one, and the planes
+        and corners it saw move onto their landmarks (tracking uses them next; the whole
+        map and its objects are rebuilt in `finish`). Returns the correction (4, 4)
+        T_optimised @ T_online^-1, which also moves the last tracked pose (frames since the
+        keyframe were tracked in the uncorrected map) unless told not to."""
+        index, plane_ids, corner_ids = self._pending
+        self._pending = None
+        assert update.index == index, "backend results come back in submission order"
+        correction = update.T_world_cam @ invert_pose(self._keyframe_online[index])
+        self._keyframe_online[index] = self._keyframe_final[index] = update.T_world_cam
+        self._update_map_geometry(
+            update.planes, update.corners, plane_ids, corner_ids, reaggregate=False
+        )
+        if move_last_tracked and self._last_tracked is not None:
+            self._last_tracked = orthonormalize_pose(correction @ self._last_tracked)
+        return correction
 
     def _update_map_geometry(
         self,
+        plane_estimates: dict[int, tuple[np.ndarray, float]],
+        corner_estimates: dict[int, np.ndarray],
         plane_ids: Iterable[int] | None = None,
         corner_ids: Iterable[int] | None = None,
         reaggregate: bool = True,
@@ -259,8 +297,6 @@ class SLAM:
         """Move the map's planes and corners (those listed; all when None) onto the
         optimised landmarks that moved by more than `min_change` (rad for normals, m for
         offsets and points), then re-aggregate the objects if asked."""
-        plane_estimates = self.backend.plane_estimates()
-        corner_estimates = self.backend.corner_estimates()
         current, current_corners = self.map.planes, self.map.corners
         planes, corners = {}, {}
         for pid in plane_estimates if plane_ids is None else plane_ids:
@@ -317,16 +353,22 @@ class SLAM:
         """End of the sequence. With iSAM2: a batch optimisation of the whole graph
         (`backend.final_iterations`, 0 for none), every keyframe pose taken from the result
         and the whole map (planes, corners, then objects) rebuilt from the optimised
-        landmarks. Returns the wall-clock ms."""
+        landmarks; the backend then stops (a SLAM takes no frames after `finish`).
+        Returns the wall-clock ms."""
         if self.backend is None:
             return 0.0
         start = time.perf_counter()
-        if self.config.backend.final_iterations:
-            self.backend.optimize_batch(self.config.backend.final_iterations)
-        for kf, (_, T) in self.backend.keyframe_poses().items():
+        result = self.backend.finish(self.config.backend.final_iterations)
+        for kf, (_, T) in result.keyframe_poses.items():
             self._keyframe_final[kf] = T
-        self._update_map_geometry()
+        self._update_map_geometry(result.planes, result.corners)
+        self.backend_result = result
         return 1e3 * (time.perf_counter() - start)
+
+    def close(self) -> None:
+        """Stop the backend without optimising (an interrupted run); idempotent."""
+        if self.backend is not None:
+            self.backend.close()
 
     # -------------------------------------------------------------------------- results
 
@@ -390,20 +432,27 @@ def run_frames(
     indices = list(indices)
     start = time.perf_counter()
     # Frames are read (PNG decoding releases the GIL) one ahead on a second thread.
-    with concurrent.futures.ThreadPoolExecutor(max_workers=1) as reader:
-        upcoming = reader.submit(_read, dataset, indices[0]) if indices else None
-        for k in range(len(indices)):
-            frame, read_ms = upcoming.result()
-            if k + 1 < len(indices):
-                upcoming = reader.submit(_read, dataset, indices[k + 1])
-            result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
-            timings.append({"read": read_ms, **result.stage_ms})
-            paths[result.path] = paths.get(result.path, 0) + 1
-            lost += result.lost
-            keyframes += result.keyframe
-            if on_result is not None:
-                on_result(result)
-    finish_ms = slam.finish()
+    try:
+        with (
+            single_native_threads(),
+            concurrent.futures.ThreadPoolExecutor(max_workers=1) as reader,
+        ):
+            upcoming = reader.submit(_read, dataset, indices[0]) if indices else None
+            for k in range(len(indices)):
+                frame, read_ms = upcoming.result()
+                if k + 1 < len(indices):
+                    upcoming = reader.submit(_read, dataset, indices[k + 1])
+                result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
+                timings.append({"read": read_ms, **result.stage_ms})
+                paths[result.path] = paths.get(result.path, 0) + 1
+                lost += result.lost
+                keyframes += result.keyframe
+                if on_result is not None:
+                    on_result(result)
+        finish_ms = slam.finish()
+    except BaseException:  # interrupted or failed: stop the backend, keep the map as it is
+        slam.close()
+        raise
     return RunSummary(
         frames=len(timings),
         seconds=time.perf_counter() - start,

@@ -26,7 +26,7 @@ from test_landmarks import (  # noqa: E402
     translation_rmse,
 )
 
-from planeslam.backend import BackendConfig, Isam2Backend  # noqa: E402
+from planeslam.backend import BackendConfig, Isam2Backend, is_keyframe  # noqa: E402
 from planeslam.errors import ConfigError  # noqa: E402
 from planeslam.factors import LandmarkConfig, LandmarkKeys, point_on_plane_factor  # noqa: E402
 from planeslam.geometry import angle_between  # noqa: E402
@@ -219,27 +219,26 @@ def test_indeterminate_update_is_caught_and_the_landmark_dropped(circle, caplog)
 
 
 def test_is_keyframe_and_config_validation():
-    backend = Isam2Backend(
-        BackendConfig(
-            keyframe_min_translation_m=0.1, keyframe_min_rotation_deg=10.0, keyframe_max_frames=5
-        )
+    config = BackendConfig(
+        keyframe_min_translation_m=0.1, keyframe_min_rotation_deg=10.0, keyframe_max_frames=5
     )
     T0 = np.eye(4)
     moved = np.eye(4)
     moved[:3, 3] = [0.0, 0.09, 0.0]
-    assert not backend.is_keyframe(T0, moved, 1)
+    assert not is_keyframe(config, T0, moved, 1)
     moved[1, 3] = 0.11
-    assert backend.is_keyframe(T0, moved, 1)
+    assert is_keyframe(config, T0, moved, 1)
     turned = gtsam.Pose3(gtsam.Rot3.Yaw(np.radians(9.0)), np.zeros(3)).matrix()
-    assert not backend.is_keyframe(T0, turned, 4)
-    assert backend.is_keyframe(T0, turned, 5)
+    assert not is_keyframe(config, T0, turned, 4)
+    assert is_keyframe(config, T0, turned, 5)
     turned = gtsam.Pose3(gtsam.Rot3.Yaw(np.radians(11.0)), np.zeros(3)).matrix()
-    assert backend.is_keyframe(T0, turned, 0)
+    assert is_keyframe(config, T0, turned, 0)
     with pytest.raises(ConfigError, match="relinearize_skip"):
         BackendConfig(relinearize_skip=0)
     with pytest.raises(ConfigError, match="odometry_sigma_trans_m"):
         BackendConfig(odometry_sigma_trans_m=-1.0)
     obs = FakeObservation(0.0, FakeSegmentation([]), FakeStructure([], []))
+    backend = Isam2Backend(config)
     backend.add_keyframe(3, 0.0, T0, obs, {})
     with pytest.raises(ConfigError, match="expected > the previous keyframe 3"):
         backend.add_keyframe(3, 0.1, T0, obs, {})
