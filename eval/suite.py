@@ -13,7 +13,6 @@ import dataclasses
 import json
 import logging
 import multiprocessing
-import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
@@ -66,7 +65,9 @@ class SuiteConfig:
     methods: tuple[str, ...] = ("open3d_odometry",)
     """Method names (keys of `planeslam.eval.suite.METHODS`)."""
     jobs: int | None = None
-    """Worker processes; default os.cpu_count(); 1 runs in this process."""
+    """Runs at once, in worker processes; default 1, in this process: each run has the
+    machine to itself, so its fps mean something (the iSAM2 backend takes the second
+    core). More finish sooner but share the cores."""
     max_time_difference_s: float = 0.02
     """Pose association window of the evaluation [s]."""
     rpe_delta_s: float = 1.0
@@ -327,7 +328,7 @@ def run_suite(
     unknown = [m for m in config.methods if m not in METHODS]
     if unknown:
         raise ConfigError(f"unknown method(s) {', '.join(unknown)}; methods: {', '.join(METHODS)}")
-    jobs = config.jobs or os.cpu_count() or 1
+    jobs = config.jobs or 1
     if jobs < 1:
         raise ConfigError(f"jobs must be >= 1, got {jobs}")
     tasks = [(spec, method) for spec in config.sequences for method in config.methods]

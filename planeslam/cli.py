@@ -200,14 +200,19 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     f.set_defaults(func=_cmd_bench_frontend)
     s = bench.add_parser(
         "suite",
-        help="run methods on sequences in parallel workers; one table (markdown + CSV)",
-        description="Run every method of a suite on every sequence (worker processes, one "
-        "per core by default) and print one table: ATE, RPE, fps, memory ratio, object size "
+        help="run methods on sequences; one table (markdown + CSV)",
+        description="Run every method of a suite on every sequence (one at a time by "
+        "default, --jobs N at once) and print one table: ATE, RPE, fps, memory ratio, object size "
         "error. Default suite: the synthetic scenes plus ../shared/data when present, with "
         "Open3D RGB-D odometry, the paper's merging and the iSAM2 backend.",
     )
     s.add_argument("suite", type=Path, nargs="?", default=None, help="suite YAML")
-    s.add_argument("--jobs", type=int, default=None, help="worker processes (default: cores)")
+    s.add_argument(
+        "--jobs",
+        type=int,
+        default=None,
+        help="runs at once (default 1: fps figures need the machine to themselves)",
+    )
     s.add_argument("--out", type=Path, default=Path("out/suite"), help="output folder")
     s.set_defaults(func=_cmd_bench_suite)
 

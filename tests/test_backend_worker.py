@@ -1,0 +1,137 @@
+"""The iSAM2 backend beside tracking (planeslam.backend_worker): the child process gives
+what inline gives, errors and interruptions reach the caller, what crosses the pipe is
+small, and Python factors see iSAM2's own linearisation point (no copy per call)."""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+from pathlib import Path
+
+import gtsam
+import numpy as np
+import pytest
+
+from planeslam.backend import BackendConfig, _new_isam2
+from planeslam.backend_worker import BackendWorker, landmark_observation
+from planeslam.config import resolve_config
+from planeslam.dataset import TumDataset
+from planeslam.errors import ConfigError, PlaneSlamError
+from planeslam.eval.trajectory_metrics import evaluate_trajectory
+from planeslam.factors.keys import LandmarkKeys
+from planeslam.factors.landmarks import PlaneLandmarks
+from planeslam.frontend import FrontEnd
+from planeslam.slam import SLAM, run_frames
+from planeslam.synth import synthesize
+
+
+@pytest.fixture(scope="module")
+def loop(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("loop") / "seq"
+    return synthesize("room_boxes_loop", root, frames=45, seed=5).out_dir
+
+
+def run_loop(root: Path, **backend_overrides):
+    cfg = resolve_config(root)
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, **backend_overrides))
+    dataset = TumDataset(root, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "isam2", T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
+    summary = run_frames(slam, dataset, range(len(dataset)))
+    ev = evaluate_trajectory(dataset.groundtruth, slam.trajectory())
+    return slam, summary, ev
+
+
+@pytest.mark.slow
+def test_the_process_gives_what_inline_gives_and_lag_keeps_accuracy(loop: Path) -> None:
+    inline, s_inline, ev_inline = run_loop(loop, run_in_process=False)
+    child, s_child, ev_child = run_loop(loop, run_in_process=True)
+    assert s_child.keyframes == s_inline.keyframes
+    np.testing.assert_allclose(
+        child.trajectory().T_world_cam, inline.trajectory().T_world_cam, atol=1e-7
+    )
+    assert child.backend_result.failures == 0
+    assert len(child.backend_result.keyframe_poses) == s_child.keyframes
+    _, s_sync, ev_sync = run_loop(loop, run_in_process=False, lag_frames=0)
+    for ev in (ev_inline, ev_child, ev_sync):
+        assert ev.ate_rmse_m < 0.01
+
+
+def first_observation(root: Path):
+    cfg = resolve_config(root)
+    frame = TumDataset(root, cfg.camera, cfg.dataset)[0]
+    return FrontEnd(cfg).process(frame.depth_m, frame.timestamp)
+
+
+def test_errors_in_the_worker_reach_the_caller_and_finish_closes(loop: Path) -> None:
+    obs = first_observation(loop)
+    worker = BackendWorker(BackendConfig())
+    T = np.eye(4)
+    worker.submit(3, 0.0, T, obs, {}, {}, None)
+    worker.submit(2, 0.1, T, obs, {}, {}, None)  # index must increase: fails in the child
+    assert worker.collect().index == 3
+    with pytest.raises(ConfigError, match="expected > the previous keyframe 3"):
+        worker.collect()
+    result = worker.finish(0)  # the child carried on after the error
+    assert list(result.keyframe_poses) == [3] and result.num_factors == 1
+    with pytest.raises(PlaneSlamError, match="has finished"):
+        worker.submit(4, 0.2, T, obs, {}, {}, None)
+    worker.close()  # idempotent
+
+
+def test_an_interrupted_run_stops_the_worker(loop: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cfg = resolve_config(loop)
+    dataset = TumDataset(loop, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "isam2")
+    original = SLAM.process
+
+    def interrupt_at_four(self, *args, **kwargs):
+        if self.frames == 4:
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(SLAM, "process", interrupt_at_four)
+    with pytest.raises(KeyboardInterrupt):
+        run_frames(slam, dataset, range(8))
+    assert slam.backend._process.poll() is not None  # the child has exited
+    assert len(slam.trajectory()) == 4
+
+
+def test_what_crosses_the_pipe_is_small_and_gives_the_same_factors(loop: Path) -> None:
+    obs = first_observation(loop)
+    slim = landmark_observation(obs)
+    assert len(pickle.dumps(slim)) < 50_000 < len(pickle.dumps(dataclasses.replace(obs)))
+    T = np.eye(4)
+    plane_ids = {p.id: p.id for p in obs.segmentation.planes}
+    errors = []
+    for observation in (obs, slim):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        keys = LandmarkKeys()
+        values.insert(keys.pose(0), gtsam.Pose3(gtsam.Rot3.Yaw(0.01), np.array([0.01, 0, 0])))
+        PlaneLandmarks(keys).add_observations(
+            graph, values, keys.pose(0), T, observation, plane_ids
+        )
+        errors.append([graph.at(i).error(values) for i in range(graph.size())])
+    assert len(errors[0]) >= 3
+    assert errors[0] == errors[1]
+
+
+def test_python_factors_get_isam2s_own_values_not_a_copy() -> None:
+    """pybind11 copies a C++ Values into a new Python object for each call of a Python
+    factor unless one exists for it: `_new_isam2` keeps one, so no call copies the map."""
+    isam, theta = _new_isam2(gtsam.ISAM2Params())
+    seen = []
+
+    def error(this, values, H):
+        seen.append(values is theta)
+        if H is not None:
+            H[0] = np.eye(3)
+        return values.atPoint3(this.keys()[0]) - np.array([1.0, 2.0, 3.0])
+
+    noise = gtsam.noiseModel.Isotropic.Sigma(3, 0.1)
+    for step in range(3):
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        graph.add(gtsam.CustomFactor(noise, [step], error))
+        values.insert(step, np.zeros(3))
+        isam.update(graph, values)
+    assert seen and all(seen)
+    np.testing.assert_allclose(isam.calculateEstimate().atPoint3(2), [1.0, 2.0, 3.0], atol=1e-9)
