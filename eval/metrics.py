@@ -49,6 +49,10 @@ class RunMetrics:
     """How each frame's pose was found (tracking path -> frames), for methods that say."""
     map_bytes_breakdown: dict[str, int] = field(default_factory=dict)
     """map_bytes by part (planes, edges, corners, objects, sparse_cloud)."""
+    backend: dict[str, float] = field(default_factory=dict)
+    """The iSAM2 backend's own figures, when it ran: update_ms_median and update_ms_max
+    (per keyframe, in its process; the 'backend' stage is what tracking waited), batch_ms
+    (the final optimisation), failures (indeterminate updates handled), factors."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -92,6 +96,7 @@ def run_metrics(
     keyframes: int = 0,
     tracking_paths: Mapping[str, int] | None = None,
     map_bytes_breakdown: Mapping[str, int] | None = None,
+    backend: Mapping[str, float] | None = None,
 ) -> RunMetrics:
     """Build RunMetrics from a run's counts and timings.
 
@@ -120,6 +125,7 @@ def run_metrics(
         keyframes=int(keyframes),
         tracking_paths=dict(tracking_paths or {}),
         map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
+        backend=dict(backend or {}),
     )
 
 
@@ -147,7 +153,22 @@ def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
         keyframes=summary.keyframes,
         tracking_paths=summary.paths,
         map_bytes_breakdown=parts,
+        backend=_backend_figures(slam),
     )
+
+
+def _backend_figures(slam: SLAM) -> dict[str, float]:
+    result = slam.backend_result
+    if result is None:
+        return {}
+    update_ms = np.asarray(result.update_ms, dtype=np.float64)
+    return {
+        "update_ms_median": float(np.median(update_ms)) if update_ms.size else 0.0,
+        "update_ms_max": float(update_ms.max()) if update_ms.size else 0.0,
+        "batch_ms": float(result.batch_ms),
+        "failures": int(result.failures),
+        "factors": int(result.num_factors),
+    }
 
 
 def write_metrics(metrics: RunMetrics, path: str | Path) -> Path:

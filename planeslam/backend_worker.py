@@ -1,16 +1,17 @@
 """The iSAM2 backend beside tracking: in a child process (the second core) or inline.
 
 `SLAM` submits each keyframe and goes on tracking; the keyframe's result (its
-optimised pose and the landmark estimates) is collected when the next keyframe
-comes, so the map the tracker sees lags the smoother by one keyframe. `inline`
-runs the same schedule in this process: the same results without the parallelism
-(tests, debugging, one-core machines).
+optimised pose and the estimates of the landmarks it saw) is collected
+`backend.lag_frames` frames later, while the smoother has worked on it beside the
+front end. `inline` runs the same schedule in this process: the same results
+without the parallelism (tests, debugging, one-core machines).
 
 Why a process: gtsam holds the GIL through `ISAM2.update`, so a thread would not
 run beside the front end. What crosses the pipe is small: a keyframe's planes
 (normal, offset, fit covariance), corners and edges, none of its pixels or points.
 Errors raised in the child (a `PlaneSlamError` such as the GeometryError of an
-update that cannot be made well posed) are raised again here, at the next call.
+update that cannot be made well posed) are raised again here when that keyframe's
+result is collected (inline: at once).
 """
 
 from __future__ import annotations
@@ -114,6 +115,7 @@ class BackendWorker:
             target=self._receive, name="planeslam-backend-replies", daemon=True
         )
         self._receiver.start()
+        self._result()  # 'ready': the child has imported gtsam (start-up, not run time)
 
     def submit(
         self,
@@ -171,12 +173,13 @@ class BackendWorker:
             self._conn.send(("close", None))
         except (OSError, ValueError):
             pass
-        self._conn.close()
         try:
             self._process.wait(timeout=5)
         except subprocess.TimeoutExpired:
             self._process.kill()
             self._process.wait()
+        self._receiver.join(timeout=5)  # the child's end is closed: it has seen EOF
+        self._conn.close()
 
     # ------------------------------------------------------------------ plumbing
 
@@ -292,6 +295,7 @@ def serve(read_fd: int, write_fd: int) -> None:
     conn = _Duplex(read_fd, write_fd)
     try:
         backend = Isam2Backend(conn.recv())
+        conn.send(("ok", "ready"))
     except (EOFError, OSError):
         return
     with single_native_threads():

@@ -51,6 +51,13 @@ class RunResult:
             f"map {m.map_bytes} bytes vs point cloud {m.pointcloud_bytes} bytes "
             f"({m.memory_ratio or 0:.0f}x smaller)",
         ]
+        if m.backend:
+            b = m.backend
+            lines.append(
+                f"iSAM2: {b['factors']:.0f} factors, update median "
+                f"{b['update_ms_median']:.0f} ms (max {b['update_ms_max']:.0f}) per keyframe, "
+                f"final batch {b['batch_ms']:.0f} ms, {b['failures']:.0f} failures handled"
+            )
         if self.evaluation is not None:
             ev = self.evaluation.evaluation
             rpe = (

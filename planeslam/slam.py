@@ -6,9 +6,12 @@ Two backends share the front end, the tracking and the plane-object map:
   (plane statistics refit, longest edges kept, objects re-aggregated); poses are never
   revised.
 - `isam2` (default): keyframes go to a GTSAM iSAM2 graph (odometry between keyframes,
-  plane and corner landmarks whose identities are the map's plane and corner ids); after
-  each update the map's planes and corners are replaced by the optimised landmarks and
-  every frame's pose is re-anchored on its optimised keyframe.
+  plane and corner landmarks whose identities are the map's plane and corner ids), which
+  runs in a child process (`planeslam.backend_worker`) while tracking goes on. A
+  keyframe's result is applied `backend.lag_frames` frames later (or at the next
+  keyframe): the keyframe takes its optimised pose, the planes and corners it saw move
+  onto their landmarks, and the pose tracked since moves by the keyframe's correction.
+  Every frame's pose is re-anchored on its optimised keyframe.
 
 `SLAM.process(depth_m, timestamp, rgb)` needs no dataset folder (live cameras, other
 sources); `run_frames` drives it over a `TumDataset`. Poses are T_world_cam (4, 4); the
@@ -39,7 +42,7 @@ from planeslam.tracking import MapView, Tracker, TrackResult
 from planeslam.trajectory import Trajectory
 
 if TYPE_CHECKING:
-    from planeslam.backend_worker import KeyframeUpdate
+    from planeslam.backend_worker import BackendResult, KeyframeUpdate
 
 logger = logging.getLogger(__name__)
 
@@ -139,8 +142,8 @@ class SLAM:
         """The keyframe in the backend whose result is not applied yet: (frame index, map
         plane ids, map corner ids it saw). One at most: a keyframe merged into the map
         before the previous one's correction would stay uncorrected there."""
-        self.backend_result = None
-        """`BackendResult` of `finish` (iSAM2): update times, failures, factors."""
+        self.backend_result: BackendResult | None = None
+        """What the iSAM2 backend reported at `finish`: update times, failures, factors."""
         self.pointcloud_bytes = 0
         """Bytes of the point cloud of every processed frame (valid depth x POINT_BYTES)."""
 
@@ -358,6 +361,7 @@ class SLAM:
         if self.backend is None:
             return 0.0
         start = time.perf_counter()
+        self._pending = None  # the final state below supersedes its result
         result = self.backend.finish(self.config.backend.final_iterations)
         for kf, (_, T) in result.keyframe_poses.items():
             self._keyframe_final[kf] = T

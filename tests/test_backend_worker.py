@@ -17,6 +17,7 @@ from planeslam.backend_worker import BackendWorker, landmark_observation
 from planeslam.config import resolve_config
 from planeslam.dataset import TumDataset
 from planeslam.errors import ConfigError, PlaneSlamError
+from planeslam.eval.metrics import slam_run_metrics
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.factors.keys import LandmarkKeys
 from planeslam.factors.landmarks import PlaneLandmarks
@@ -51,6 +52,8 @@ def test_the_process_gives_what_inline_gives_and_lag_keeps_accuracy(loop: Path) 
     )
     assert child.backend_result.failures == 0
     assert len(child.backend_result.keyframe_poses) == s_child.keyframes
+    figures = slam_run_metrics(child, s_child).backend
+    assert figures["factors"] > 0 and figures["update_ms_max"] >= figures["update_ms_median"] > 0
     _, s_sync, ev_sync = run_loop(loop, run_in_process=False, lag_frames=0)
     for ev in (ev_inline, ev_child, ev_sync):
         assert ev.ate_rmse_m < 0.01

@@ -271,7 +271,7 @@ def test_stage_medians_and_run_metrics(tmp_path: Path) -> None:
     assert list(m.to_dict()) == [
         "frames", "fps", "frame_ms_median", "stage_ms", "peak_rss_mb",
         "map_bytes", "pointcloud_bytes", "memory_ratio", "lost_frames",
-        "keyframes", "tracking_paths", "map_bytes_breakdown",
+        "keyframes", "tracking_paths", "map_bytes_breakdown", "backend",
     ]  # fmt: skip
     assert read_metrics(write_metrics(m, tmp_path / "metrics.json")) == m
     assert memory_ratio(0, 100) is None
