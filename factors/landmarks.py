@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Literal
 
@@ -190,13 +190,19 @@ class PlaneLandmarks:
         """Ids of the corner landmarks that have a value, increasing."""
         return sorted(self._corners)
 
-    def plane_estimates(self) -> dict[int, tuple[np.ndarray, float]]:
-        """Landmark id -> (n_world (3,), d_world [m]) as last known."""
-        return {j: (n.copy(), d) for j, (n, d) in sorted(self._planes.items())}
+    def plane_estimates(
+        self, ids: Iterable[int] | None = None
+    ) -> dict[int, tuple[np.ndarray, float]]:
+        """Landmark id -> (n_world (3,), d_world [m]) as last known, of every landmark or
+        of those `ids` that have a value."""
+        ids = sorted(self._planes) if ids is None else [j for j in ids if j in self._planes]
+        return {j: (self._planes[j][0].copy(), self._planes[j][1]) for j in ids}
 
-    def corner_estimates(self) -> dict[int, np.ndarray]:
-        """Landmark id -> p_world (3,) [m] as last known."""
-        return {k: c.point_world.copy() for k, c in sorted(self._corners.items())}
+    def corner_estimates(self, ids: Iterable[int] | None = None) -> dict[int, np.ndarray]:
+        """Landmark id -> p_world (3,) [m] as last known, of every landmark or of those
+        `ids` that have a value."""
+        ids = sorted(self._corners) if ids is None else [k for k in ids if k in self._corners]
+        return {k: self._corners[k].point_world.copy() for k in ids}
 
     def corner_planes(self) -> dict[int, tuple[int, int, int]]:
         """Corner landmark id -> its three plane landmark ids."""

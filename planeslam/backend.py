@@ -21,7 +21,7 @@ import logging
 import math
 import re
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -141,7 +141,8 @@ class Isam2Backend:
         self._params = gtsam.ISAM2Params()
         self._params.setRelinearizeThreshold(self.config.relinearize_threshold)
         self._params.relinearizeSkip = self.config.relinearize_skip
-        self._isam, self._theta = _new_isam2(self._params)
+        self._isam: gtsam.ISAM2 | None = None  # made by `_rebuild` on the first update
+        self._theta: gtsam.Values | None = None
         self._graph = gtsam.NonlinearFactorGraph()  # every committed factor, for rebuilds
         self._estimate = gtsam.Values()
         self._timestamps: dict[int, float] = {}
@@ -170,13 +171,15 @@ class Isam2Backend:
             for i, t in self._timestamps.items()
         }
 
-    def plane_estimates(self) -> dict[int, tuple[np.ndarray, float]]:
-        """Plane landmark id -> (n_world (3,), d_world [m]), optimised."""
-        return self.landmarks.plane_estimates()
+    def plane_estimates(
+        self, ids: Iterable[int] | None = None
+    ) -> dict[int, tuple[np.ndarray, float]]:
+        """Plane landmark id -> (n_world (3,), d_world [m]), optimised (all, or `ids`)."""
+        return self.landmarks.plane_estimates(ids)
 
-    def corner_estimates(self) -> dict[int, np.ndarray]:
-        """Corner landmark id -> p_world (3,) [m], optimised."""
-        return self.landmarks.corner_estimates()
+    def corner_estimates(self, ids: Iterable[int] | None = None) -> dict[int, np.ndarray]:
+        """Corner landmark id -> p_world (3,) [m], optimised (all, or `ids`)."""
+        return self.landmarks.corner_estimates(ids)
 
     # ------------------------------------------------------------------ update
 
@@ -279,6 +282,8 @@ class Isam2Backend:
     ) -> list[gtsam.NonlinearFactor]:
         """One iSAM2 update with this keyframe's factors; on an indeterminate system,
         rebuild and retry with fewer landmark factors. Returns the factors committed."""
+        if self._isam is None:
+            self._rebuild()
         new_keys = set(added.new_keys)
         dropped: set[int] = set()
         level = 0  # 0: drop named keys, 1: drop all new landmarks, 2: drop all landmark factors
@@ -362,7 +367,7 @@ class Isam2Backend:
             return (time.perf_counter() - start) * 1e3
         self._estimate = estimate
         self.landmarks.update_estimates(self._estimate)
-        self._rebuild()
+        self._isam = self._theta = None  # rebuilt at the estimate if another keyframe comes
         return (time.perf_counter() - start) * 1e3
 
     def _rebuild(self) -> None:

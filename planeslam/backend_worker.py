@@ -19,6 +19,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import multiprocessing
 import os
 import queue
 import signal
@@ -220,12 +221,11 @@ def _handle(backend: Isam2Backend, kind: str, payload: Any) -> Any:
     if kind == "keyframe":
         index, plane_ids, corner_ids = payload[0], payload[4], payload[5]
         T = backend.add_keyframe(*payload)
-        planes, corners = backend.plane_estimates(), backend.corner_estimates()
         return KeyframeUpdate(
             index=index,
             T_world_cam=T,
-            planes={j: planes[j] for j in plane_ids.values() if j in planes},
-            corners={k: corners[k] for k in corner_ids.values() if k in corners},
+            planes=backend.plane_estimates(plane_ids.values()),
+            corners=backend.corner_estimates(corner_ids.values()),
             update_ms=backend.update_ms[-1],
         )
     if kind == "finish":
@@ -242,57 +242,35 @@ def _handle(backend: Isam2Backend, kind: str, payload: Any) -> Any:
     raise ValueError(f"unknown backend request {kind!r}")
 
 
-class _Duplex:
-    """Send on one pipe, receive on the other (the two ends of `multiprocessing.Pipe`)."""
-
-    def __init__(self, read_fd: int, write_fd: int) -> None:
-        self._in = Connection(read_fd, writable=False)
-        self._out = Connection(write_fd, readable=False)
-
-    def send(self, obj: Any) -> None:
-        self._out.send(obj)
-
-    def recv(self) -> Any:
-        return self._in.recv()
-
-    def close(self) -> None:
-        self._out.close()
-        self._in.close()
-
-
-def _start_worker(config: BackendConfig) -> tuple[subprocess.Popen, _Duplex]:
+def _start_worker(config: BackendConfig) -> tuple[subprocess.Popen, Connection]:
     """A fresh interpreter running `serve`, and the connection to it.
 
     Not `multiprocessing.Process`: 'fork' would copy gtsam's TBB threads in an unusable
     state, and 'spawn' re-runs the caller's main script (a script without an
-    `if __name__ == "__main__"` guard would start SLAM again in the child).
+    `if __name__ == "__main__"` guard would start SLAM again in the child). Only the
+    connection comes from multiprocessing: one end of its `Pipe`, passed by descriptor.
     """
-    to_child_r, to_child_w = os.pipe()
-    to_parent_r, to_parent_w = os.pipe()
+    conn, child_conn = multiprocessing.Pipe()
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
     process = subprocess.Popen(
-        [sys.executable, "-c", _CHILD_CODE, str(to_child_r), str(to_parent_w)],
-        pass_fds=(to_child_r, to_parent_w),
+        [sys.executable, "-c", _CHILD_CODE, str(child_conn.fileno())],
+        pass_fds=(child_conn.fileno(),),
         env=env,
     )
-    os.close(to_child_r)
-    os.close(to_parent_w)
-    conn = _Duplex(to_parent_r, to_child_w)
+    child_conn.close()
     conn.send(config)
     return process, conn
 
 
-_CHILD_CODE = (
-    "import sys; from planeslam.backend_worker import serve; serve(*map(int, sys.argv[1:3]))"
-)
+_CHILD_CODE = "import sys; from planeslam.backend_worker import serve; serve(int(sys.argv[1]))"
 
 
-def serve(read_fd: int, write_fd: int) -> None:
-    """The worker process: a `BackendConfig`, then requests in and replies out, until
-    'close' or a closed pipe."""
+def serve(fd: int) -> None:
+    """The worker process, on connection descriptor `fd`: a `BackendConfig`, then requests
+    in and replies out, until 'close' or a closed connection."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    conn = _Duplex(read_fd, write_fd)
+    conn = Connection(fd)
     try:
         backend = Isam2Backend(conn.recv())
         conn.send(("ok", "ready"))
@@ -302,7 +280,7 @@ def serve(read_fd: int, write_fd: int) -> None:
         _serve_requests(conn, backend)
 
 
-def _serve_requests(conn: _Duplex, backend: Isam2Backend) -> None:
+def _serve_requests(conn: Connection, backend: Isam2Backend) -> None:
     while True:
         try:
             kind, payload = conn.recv()
