@@ -9,10 +9,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planeslam.dataset import TumDataset
-from planeslam.errors import EvaluationError
-from planeslam.odometry import RgbdOdometry
-from planeslam.trajectory import Trajectory
+from planeslam.core.errors import EvaluationError
+from planeslam.io.dataset import TumDataset
+from planeslam.io.trajectory import Trajectory
+from planeslam.tracking.odometry import RgbdOdometry
 
 log = logging.getLogger(__name__)
 

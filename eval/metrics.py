@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from planeslam.errors import EvaluationError
+from planeslam.core.errors import EvaluationError
 
 if TYPE_CHECKING:
     from planeslam.slam import SLAM, RunSummary

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from planeslam.errors import EvaluationError
+from planeslam.core.errors import EvaluationError
 
 log = logging.getLogger(__name__)
 

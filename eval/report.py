@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from planeslam.errors import EvaluationError
+from planeslam.core.errors import EvaluationError
 
 from .object_sizes import object_size_errors_from_files, read_json
 from .plots import plot_ate_over_time, plot_trajectories

@@ -19,10 +19,11 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from planeslam.config import from_mapping, read_yaml, resolve_config
-from planeslam.dataset import TumDataset
-from planeslam.errors import ConfigError, EvaluationError
-from planeslam.trajectory import Trajectory, write_tum
+from planeslam.config import resolve_config
+from planeslam.core.config import from_mapping, read_yaml
+from planeslam.core.errors import ConfigError, EvaluationError
+from planeslam.io.dataset import TumDataset
+from planeslam.io.trajectory import Trajectory, write_tum
 
 from .metrics import RunMetrics, run_metrics, slam_run_metrics, write_metrics
 from .object_sizes import mean_object_size_error, object_size_errors
@@ -251,7 +252,7 @@ def sequence_root(spec: SequenceSpec, base_dir: str | Path, out_dir: str | Path 
 def render_scenes(config: SuiteConfig, out_dir: str | Path) -> None:
     """Render the synthetic scenes of a suite into out_dir/data once (seed 0), before the
     workers start, so that no two workers render the same scene."""
-    from planeslam.synth import synthesize
+    from planeslam.sim.render import synthesize
 
     for spec in config.sequences:
         if spec.scene is not None:

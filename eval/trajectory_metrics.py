@@ -22,8 +22,8 @@ from evo.core import lie_algebra, metrics, sync
 from evo.core.geometry import GeometryException
 from evo.core.trajectory import PoseTrajectory3D
 
-from planeslam.errors import DatasetFormatError, EvaluationError
-from planeslam.trajectory import Trajectory, read_tum
+from planeslam.core.errors import DatasetFormatError, EvaluationError
+from planeslam.io.trajectory import Trajectory, read_tum
 
 log = logging.getLogger(__name__)
 

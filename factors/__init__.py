@@ -13,16 +13,36 @@ Each factory returns a ready gtsam factor; the Python (CustomFactor) ones cost
 about an order of magnitude more to linearise than built-ins and hold the GIL,
 so `plane_factor` (built-in) is the default and `robust_plane_factor` the
 choice when outliers are expected.
+
+The names are imported on first use, so `planeslam.factors.config` loads no gtsam.
 """
 
-from .corner_observation import corner_factor
-from .keys import LandmarkKeys
-from .plane_observation import measured_plane, plane_factor, robust_plane_factor
-from .plane_structure import orthogonal_planes_factor, parallel_planes_factor, structural_factor
-from .point_on_plane import point_on_plane_factor
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+_EXPORTS = {
+    "AddedFactors": ".landmarks",
+    "LandmarkConfig": ".config",
+    "LandmarkKeys": ".config",
+    "PlaneLandmarks": ".landmarks",
+    "corner_factor": ".corner_observation",
+    "measured_plane": ".plane_observation",
+    "orthogonal_planes_factor": ".plane_structure",
+    "parallel_planes_factor": ".plane_structure",
+    "plane_factor": ".plane_observation",
+    "point_on_plane_factor": ".point_on_plane",
+    "robust_plane_factor": ".plane_observation",
+    "structural_factor": ".plane_structure",
+}
+"""Public name -> the module (relative to this package) that defines it."""
 
 __all__ = [
+    "AddedFactors",
+    "LandmarkConfig",
     "LandmarkKeys",
+    "PlaneLandmarks",
     "corner_factor",
     "measured_plane",
     "orthogonal_planes_factor",
@@ -33,6 +53,22 @@ __all__ = [
     "structural_factor",
 ]
 
-from .landmarks import AddedFactors, LandmarkConfig, PlaneLandmarks  # noqa: E402
+if TYPE_CHECKING:
+    from .config import LandmarkConfig, LandmarkKeys
+    from .corner_observation import corner_factor
+    from .landmarks import AddedFactors, PlaneLandmarks
+    from .plane_observation import measured_plane, plane_factor, robust_plane_factor
+    from .plane_structure import orthogonal_planes_factor, parallel_planes_factor, structural_factor
+    from .point_on_plane import point_on_plane_factor
 
-__all__ += ["AddedFactors", "LandmarkConfig", "PlaneLandmarks"]
+
+def __getattr__(name: str) -> Any:
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(_EXPORTS[name], __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'planeslam.factors' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_EXPORTS))

@@ -14,8 +14,8 @@ import time
 import gtsam
 import numpy as np
 
+from .config import LandmarkKeys
 from .corner_observation import corner_factor
-from .keys import LandmarkKeys
 from .plane_observation import plane_factor, robust_plane_factor
 from .plane_structure import orthogonal_planes_factor, parallel_planes_factor
 from .point_on_plane import point_on_plane_factor

@@ -7,7 +7,7 @@ import math
 import gtsam
 import numpy as np
 
-from planeslam.errors import ConfigError, GeometryError
+from planeslam.core.errors import ConfigError, GeometryError
 
 _ROBUST_DEFAULT_K = {"huber": 1.345, "cauchy": 2.3849}  # 95 % efficiency under Gaussian noise
 

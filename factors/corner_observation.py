@@ -16,7 +16,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from planeslam.errors import ConfigError, GeometryError
+from planeslam.core.errors import ConfigError, GeometryError
 
 from ._noise import distinct_keys, gaussian_noise
 

@@ -29,7 +29,7 @@ Speed: the robust plane, corner and structural factors are `CustomFactor`s, and
 pybind11 hands each call a Python copy of the whole `Values` being linearised
 unless a Python object for that very `Values` exists. With iSAM2, keep
 `theta = isam.getLinearizationPoint()` alive beside the `ISAM2` and every call
-gets it without a copy (`planeslam.backend` does; on 7-Scenes the copies had made
+gets it without a copy (`planeslam.backend.isam2` does; on 7-Scenes the copies had made
 each update O(map size) per factor and the 5-iteration batch at the end 21 s). gtsam's
 batch optimisers linearise at Values of their own: on large graphs prefer iSAM2
 updates, or fewer Python factors (`robust_kernel=None` takes the built-in plane factor).
@@ -41,97 +41,25 @@ import logging
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal
+from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
 
-from planeslam.association import associate_with_corners
-from planeslam.errors import AssociationError, ConfigError, GeometryError
-from planeslam.geometry import angle_between, as_pose, transform_plane, transform_points
+from planeslam.core.errors import AssociationError, ConfigError, GeometryError
+from planeslam.core.geometry import angle_between, as_pose, transform_plane, transform_points
+from planeslam.tracking.association import associate_with_corners
 
+from .config import LandmarkConfig, LandmarkKeys
 from .corner_observation import corner_factor
-from .keys import LandmarkKeys
 from .plane_observation import plane_factor, robust_plane_factor
 from .plane_structure import structural_factor
 from .point_on_plane import point_on_plane_factor
 
 if TYPE_CHECKING:
-    from planeslam.frontend import FrameObservation
+    from planeslam.frontend.pipeline import FrameObservation
 
 logger = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class LandmarkConfig:
-    """Noise and options of the landmark factors."""
-
-    plane_sigma_floor_rad: float = 1e-4
-    """Added in quadrature to both normal components of every plane fit's sigma [rad].
-    Small: the fit covariance itself (with its normal/offset correlation) is the better
-    noise model; a large isotropic floor drowns that correlation and biases the poses
-    (box_room_circle ATE 2.4 mm with 5e-3, 0.3 mm with 1e-4)."""
-    plane_sigma_floor_m: float = 1e-4
-    """Added in quadrature to the offset sigma of every plane fit [m]."""
-    robust_kernel: Literal["huber", "cauchy"] | None = "huber"
-    """None: the built-in OrientedPlane3Factor; 'huber' (default) / 'cauchy': the robust
-    CustomFactor (about 10x slower to linearise, 1.4x per iSAM2 update). With the fit
-    covariance as noise, a mis-segmented border makes a plane an outlier: Huber took the
-    room_boxes_loop ATE from 3.7 mm to 0.8 mm."""
-    robust_k: float | None = None
-    """Robust threshold in whitened units (None: 1.345 Huber, 2.3849 Cauchy)."""
-    corner_sigma_m: float = 0.01
-    """Isotropic sigma of a corner point observation, camera frame [m]."""
-    structure_tolerance_deg: float = 5.0
-    """An observed edge whose planes' normals are within this of 90 deg (or 0 / 180 deg)
-    gets an orthogonality (parallelism) factor [deg], in (0, 45)."""
-    structure_sigma_rad: float = 0.01
-    """Sigma of the structural factors [rad]."""
-    point_on_plane_sigma_m: float = 0.01
-    """Sigma of the distance of a corner landmark to each of its three planes [m]."""
-    use_structure: bool = True
-    """Add orthogonality / parallelism factors between plane landmarks meeting at edges."""
-    use_corners: bool = True
-    """Add corner landmarks (corner observation + three point-on-plane factors)."""
-    associate_max_angle_deg: float = 5.0
-    """`associate` gate: angle between an observed normal (moved to the world by the
-    predicted pose) and a landmark normal [deg]."""
-    associate_max_offset_m: float = 0.04
-    """`associate` gate: offset difference [m]. Keep it below the gap between parallel
-    surfaces the scene has (two box tops 5 cm apart); widen it, and the angle gate,
-    when the predicted pose is worse than a few mm / tenths of a degree."""
-    associate_max_corner_distance_m: float = 0.05
-    """`associate` gate: distance of an observed corner to a corner landmark [m]."""
-
-    def __post_init__(self) -> None:
-        positive = (
-            "plane_sigma_floor_rad",
-            "plane_sigma_floor_m",
-            "corner_sigma_m",
-            "structure_sigma_rad",
-            "point_on_plane_sigma_m",
-            "associate_max_angle_deg",
-            "associate_max_offset_m",
-            "associate_max_corner_distance_m",
-        )
-        for name in positive:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not (
-                isinstance(value, (int, float)) and math.isfinite(value) and value > 0
-            ):
-                raise ConfigError(f"landmarks.{name}={value!r}: expected a finite number > 0")
-        if self.robust_kernel not in (None, "huber", "cauchy"):
-            raise ConfigError(
-                f"landmarks.robust_kernel={self.robust_kernel!r}: "
-                "expected null, 'huber' or 'cauchy'"
-            )
-        if self.robust_k is not None and not (math.isfinite(self.robust_k) and self.robust_k > 0):
-            raise ConfigError(f"landmarks.robust_k={self.robust_k!r}: expected a number > 0")
-        if not 0.0 < self.structure_tolerance_deg < 45.0:
-            raise ConfigError(
-                f"landmarks.structure_tolerance_deg={self.structure_tolerance_deg!r}: "
-                "expected (0, 45)"
-            )
 
 
 @dataclass(frozen=True)
@@ -244,7 +172,7 @@ class PlaneLandmarks:
     ) -> tuple[dict[int, int], dict[int, int]]:
         """Match a frame's planes and corners to the landmarks through a predicted pose.
 
-        T_world_cam_pred (4, 4). Uses `planeslam.association.associate_with_corners`
+        T_world_cam_pred (4, 4). Uses `planeslam.tracking.association.associate_with_corners`
         against the current landmark estimates (gates: normal angle [deg], offset [m],
         corner distance [m]; None takes the config's `associate_*`). Returns
         (plane_ids, corner_ids): observed plane id -> landmark id and observed corner

@@ -25,7 +25,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from planeslam.errors import GeometryError
+from planeslam.core.errors import GeometryError
 
 from ._noise import distinct_keys, gaussian_noise, robust_noise
 
@@ -101,7 +101,7 @@ def measured_plane(measured_cam: np.ndarray | gtsam.OrientedPlane3) -> gtsam.Ori
 
     A non-unit normal is rescaled with its offset (OrientedPlane3's own constructor
     would normalise n but keep d). A plane with d <= 0 faces away from the camera:
-    orient it first (`planeslam.geometry.orient_plane_toward`), since a flipped normal
+    orient it first (`planeslam.core.geometry.orient_plane_toward`), since a flipped normal
     gives zero normal error and a wrong offset error.
     """
     if isinstance(measured_cam, gtsam.OrientedPlane3):

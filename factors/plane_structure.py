@@ -25,7 +25,7 @@ import math
 import gtsam
 import numpy as np
 
-from planeslam.errors import ConfigError, GeometryError
+from planeslam.core.errors import ConfigError, GeometryError
 
 from ._noise import distinct_keys, isotropic_noise
 
@@ -71,7 +71,7 @@ def structural_factor(
     """Orthogonality or parallelism factor when the measured angle is close to it, else None.
 
     measured_angle_rad: angle in [0, pi] between the two landmark normals (world
-    frame, `planeslam.geometry.angle_between(n_a, n_b)`; not the dihedral angle
+    frame, `planeslam.core.geometry.angle_between(n_a, n_b)`; not the dihedral angle
     between plane regions, which ignores the normals' signs). Orthogonal when
     |angle - pi/2| < tolerance_rad; parallel when angle < tolerance_rad (normals
     agree) or angle > pi - tolerance_rad (normals opposite; the parallel error

@@ -7,7 +7,7 @@ Two backends share the front end, the tracking and the plane-object map:
   revised.
 - `isam2` (default): keyframes go to a GTSAM iSAM2 graph (odometry between keyframes,
   plane and corner landmarks whose identities are the map's plane and corner ids), which
-  runs in a child process (`planeslam.backend_worker`) while tracking goes on. A
+  runs in a child process (`planeslam.backend.worker`) while tracking goes on. A
   keyframe's result is applied `backend.lag_frames` frames later (or at the next
   keyframe): the keyframe takes its optimised pose, the planes and corners it saw move
   onto their landmarks, and the pose tracked since moves by the keyframe's correction.
@@ -29,20 +29,20 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from planeslam.backend import is_keyframe
+from planeslam.backend.isam2 import is_keyframe
 from planeslam.config import PlaneSlamConfig
-from planeslam.dataset import Frame, TumDataset
-from planeslam.errors import ConfigError, DatasetFormatError
-from planeslam.frontend import FrameObservation, FrontEnd
-from planeslam.geometry import invert_pose, orthonormalize_pose, transform_points
-from planeslam.map import Map
-from planeslam.native_threads import single_native_threads
-from planeslam.odometry import RgbdOdometry
-from planeslam.tracking import MapView, Tracker, TrackResult
-from planeslam.trajectory import Trajectory
+from planeslam.core.errors import ConfigError, DatasetFormatError
+from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
+from planeslam.core.native_tuning import single_native_threads
+from planeslam.frontend.pipeline import FrameObservation, FrontEnd
+from planeslam.io.dataset import Frame, TumDataset
+from planeslam.io.trajectory import Trajectory
+from planeslam.mapping.map import Map
+from planeslam.tracking.odometry import RgbdOdometry
+from planeslam.tracking.tracker import MapView, Tracker, TrackResult
 
 if TYPE_CHECKING:
-    from planeslam.backend_worker import BackendResult, KeyframeUpdate
+    from planeslam.backend.worker import BackendResult, KeyframeUpdate
 
 logger = logging.getLogger(__name__)
 
@@ -73,7 +73,7 @@ class FrameResult:
     T_world_cam: np.ndarray
     """(4, 4) pose estimated online (before later optimisation)."""
     path: str
-    """How the pose was found (`planeslam.tracking.PATHS`)."""
+    """How the pose was found (`planeslam.tracking.tracker.PATHS`)."""
     reason: str
     """Why tracking needed a fallback or lost the frame; '' otherwise."""
     keyframe: bool
@@ -121,7 +121,7 @@ class SLAM:
         self.map = Map(config.map, config.objects)
         self.backend = None
         if backend == "isam2":
-            from planeslam.backend_worker import BackendWorker
+            from planeslam.backend.worker import BackendWorker
 
             self.backend = BackendWorker(config.backend, inline=not config.backend.run_in_process)
         self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first)

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from planeslam.association import (
+from planeslam.core.errors import AssociationError
+from planeslam.core.geometry import invert_pose, transform_points
+from planeslam.tracking.association import (
     Association,
     associate_corners,
     associate_planes,
@@ -14,8 +16,6 @@ from planeslam.association import (
     outline_overlap,
     plane_association_cost,
 )
-from planeslam.errors import AssociationError
-from planeslam.geometry import invert_pose, transform_points
 
 DEG = np.pi / 180
 

@@ -26,11 +26,12 @@ from test_landmarks import (  # noqa: E402
     translation_rmse,
 )
 
-from planeslam.backend import BackendConfig, Isam2Backend, is_keyframe  # noqa: E402
-from planeslam.errors import ConfigError  # noqa: E402
+from planeslam.backend.config import BackendConfig
+from planeslam.backend.isam2 import Isam2Backend, is_keyframe
+from planeslam.core.errors import ConfigError  # noqa: E402
+from planeslam.core.geometry import angle_between  # noqa: E402
 from planeslam.factors import LandmarkConfig, LandmarkKeys, point_on_plane_factor  # noqa: E402
-from planeslam.geometry import angle_between  # noqa: E402
-from planeslam.synth_scenes import box_room_circle, room_boxes_loop  # noqa: E402
+from planeslam.sim.scenes import box_room_circle, room_boxes_loop  # noqa: E402
 
 ODOM_SIGMAS = (0.003, 0.005)  # rad, m per keyframe
 
@@ -202,7 +203,7 @@ def test_indeterminate_update_is_caught_and_the_landmark_dropped(circle, caplog)
         )
 
     backend.landmarks.add_observations = with_a_loose_corner  # type: ignore[method-assign]
-    with caplog.at_level("WARNING", logger="planeslam.backend"):
+    with caplog.at_level("WARNING", logger="planeslam.backend.isam2"):
         run_sequence(backend, scene, T_true[:8], odometry[:7], observations[:8], associate=False)
     assert backend.failures == 1
     assert "Indeterminate" in caplog.text and "dropped 0 new plane and 1 new corner" in caplog.text
@@ -247,7 +248,7 @@ def test_is_keyframe_and_config_validation():
 
 
 def test_backend_config_round_trips_through_a_mapping():
-    from planeslam.config import from_mapping, to_mapping
+    from planeslam.core.config import from_mapping, to_mapping
 
     config = BackendConfig(
         extra_updates=0, landmarks=LandmarkConfig(robust_kernel="cauchy", use_structure=False)
@@ -272,8 +273,8 @@ def test_custom_key_characters():
 def test_real_front_end_observations_on_rendered_frames():
     """The real FrontEnd on rendered depth (Kinect noise) -> associate -> add_keyframe."""
     from planeslam.config import load_config
-    from planeslam.frontend import FrontEnd
-    from planeslam.synth import render_frame
+    from planeslam.frontend.pipeline import FrontEnd
+    from planeslam.sim.render import render_frame
 
     scene, trajectory = box_room_circle(frames=24)
     config = load_config("synthetic")

@@ -1,4 +1,4 @@
-"""The iSAM2 backend beside tracking (planeslam.backend_worker): the child process gives
+"""The iSAM2 backend beside tracking (planeslam.backend.worker): the child process gives
 what inline gives, errors and interruptions reach the caller, what crosses the pipe is
 small, and Python factors see iSAM2's own linearisation point (no copy per call)."""
 
@@ -12,18 +12,19 @@ import gtsam
 import numpy as np
 import pytest
 
-from planeslam.backend import BackendConfig, _new_isam2
-from planeslam.backend_worker import BackendWorker, landmark_observation
+from planeslam.backend.config import BackendConfig
+from planeslam.backend.isam2 import _new_isam2
+from planeslam.backend.worker import BackendWorker, landmark_observation
 from planeslam.config import resolve_config
-from planeslam.dataset import TumDataset
-from planeslam.errors import ConfigError, PlaneSlamError
+from planeslam.core.errors import ConfigError, PlaneSlamError
 from planeslam.eval.metrics import slam_run_metrics
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
-from planeslam.factors.keys import LandmarkKeys
+from planeslam.factors.config import LandmarkKeys
 from planeslam.factors.landmarks import PlaneLandmarks
-from planeslam.frontend import FrontEnd
+from planeslam.frontend.pipeline import FrontEnd
+from planeslam.io.dataset import TumDataset
+from planeslam.sim.render import synthesize
 from planeslam.slam import SLAM, run_frames
-from planeslam.synth import synthesize
 
 
 @pytest.fixture(scope="module")

@@ -9,10 +9,9 @@ import numpy as np
 import pytest
 from conftest import shared_sequence
 
-from planeslam.camera import CameraConfig
 from planeslam.config import resolve_config
-from planeslam.dataset import DatasetConfig, Frame, TumDataset
-from planeslam.errors import ConfigError, EvaluationError
+from planeslam.core.camera import CameraConfig
+from planeslam.core.errors import ConfigError, EvaluationError
 from planeslam.eval.baselines import run_open3d_odometry
 from planeslam.eval.suite import (
     SequenceSpec,
@@ -25,8 +24,10 @@ from planeslam.eval.suite import (
     write_csv,
 )
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
-from planeslam.odometry import registration_ok
-from planeslam.trajectory import Trajectory
+from planeslam.io.config import DatasetConfig
+from planeslam.io.dataset import Frame, TumDataset
+from planeslam.io.trajectory import Trajectory
+from planeslam.tracking.odometry import registration_ok
 
 
 @dataclass

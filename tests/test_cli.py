@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from planeslam.cli import main
+from planeslam.app.cli import main
 
 COMMANDS = ("synth", "demo", "eval", "run", "frame", "bench")
 
@@ -24,7 +24,7 @@ def test_help(command: str, capsys: pytest.CaptureFixture[str]) -> None:
 
 def test_errors_are_one_line_with_exit_code_2(tmp_path: Path) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "planeslam.cli", "eval", str(tmp_path / "gt.txt"), "x.txt"],
+        [sys.executable, "-m", "planeslam.app.cli", "eval", str(tmp_path / "gt.txt"), "x.txt"],
         capture_output=True,
         text=True,
     )

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planeslam.camera import CameraConfig, PixelRays
-from planeslam.cloud import organized_cloud, valid_mask
-from planeslam.errors import GeometryError
+from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.errors import GeometryError
+from planeslam.frontend.cloud import organized_cloud, valid_mask
 
 CAMERA = CameraConfig(fx=500.0, fy=480.0, cx=31.5, cy=23.5, width=64, height=48)
 

@@ -6,15 +6,10 @@ from pathlib import Path
 
 import pytest
 
-from planeslam.camera import CameraConfig
-from planeslam.config import (
-    PRESETS,
-    PlaneSlamConfig,
-    load_config,
-    resolve_config,
-    save_yaml,
-)
-from planeslam.errors import ConfigError
+from planeslam.config import PRESETS, PlaneSlamConfig, load_config, resolve_config
+from planeslam.core.camera import CameraConfig
+from planeslam.core.config import save_yaml
+from planeslam.core.errors import ConfigError
 
 
 @pytest.mark.parametrize("preset", PRESETS)
@@ -113,7 +108,8 @@ def test_defaults_yaml_lists_every_key_with_the_code_default() -> None:
     """configs/defaults.yaml documents every key; regenerate it when a default changes."""
     import yaml
 
-    from planeslam.config import PlaneSlamConfig, load_config, preset_path, to_mapping
+    from planeslam.config import PlaneSlamConfig, load_config, preset_path
+    from planeslam.core.config import to_mapping
 
     assert load_config("defaults") == PlaneSlamConfig()
     written = yaml.safe_load(preset_path("defaults").read_text(encoding="utf-8"))

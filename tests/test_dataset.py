@@ -8,10 +8,11 @@ import cv2
 import numpy as np
 import pytest
 
-from planeslam.camera import CameraConfig
 from planeslam.config import resolve_config
-from planeslam.dataset import DatasetConfig, TumDataset, associate_timestamps
-from planeslam.errors import AssociationError, DatasetFormatError
+from planeslam.core.camera import CameraConfig
+from planeslam.core.errors import AssociationError, DatasetFormatError
+from planeslam.io.config import DatasetConfig
+from planeslam.io.dataset import TumDataset, associate_timestamps
 from tests.conftest import shared_sequence
 
 # (folder, frames, median valid depth range [m] per frame, from each SOURCE.md)

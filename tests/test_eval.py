@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from planeslam.errors import EvaluationError
+from planeslam.core.errors import EvaluationError
 from planeslam.eval.metrics import (
     RunMetrics,
     memory_ratio,
@@ -34,7 +34,7 @@ from planeslam.eval.trajectory_metrics import (
     evaluate_trajectory,
     format_table,
 )
-from planeslam.trajectory import Trajectory, write_tum
+from planeslam.io.trajectory import Trajectory, write_tum
 
 BIN = Path(sys.executable).parent
 RATE_HZ = 30.0

@@ -10,7 +10,7 @@ import pytest
 from gtsam.utils.numerical_derivative import numericalDerivative11
 from helpers import assert_pose_close
 
-from planeslam.errors import ConfigError, GeometryError
+from planeslam.core.errors import ConfigError, GeometryError
 from planeslam.factors import (
     LandmarkKeys,
     corner_factor,
@@ -519,8 +519,8 @@ def test_fit_covariance_matches_the_factor_error_statistics() -> None:
     normal/offset cross terms are large); the spread of the built-in factor's error at the
     true pose and plane must match `error_covariance(fit covariance)`, cross-term signs
     included (the fit covariance itself has them the other way round)."""
+    from planeslam.core.plane_fit import moments_of, plane_covariance, plane_from_moments
     from planeslam.factors.plane_observation import error_covariance
-    from planeslam.plane_fit import moments_of, plane_covariance, plane_from_moments
 
     rng = np.random.default_rng(7)
     n_true = np.array([0.2, -0.1, -1.0]) / np.linalg.norm([0.2, -0.1, -1.0])

@@ -16,11 +16,11 @@ from test_intersections import (
 )
 from test_segmentation import _check_against_truth
 
-from planeslam.camera import CameraConfig
 from planeslam.config import PlaneSlamConfig
-from planeslam.errors import GeometryError
-from planeslam.frontend import STAGES, FrameObservation, FrontEnd
-from planeslam.geometry import invert_pose, transform_points
+from planeslam.core.camera import CameraConfig
+from planeslam.core.errors import GeometryError
+from planeslam.core.geometry import invert_pose, transform_points
+from planeslam.frontend.pipeline import STAGES, FrameObservation, FrontEnd
 
 CONFIG = PlaneSlamConfig()
 assert CONFIG.camera == CameraConfig()  # the renders use the default 640 x 480 camera

@@ -1,7 +1,7 @@
 """Real plane intersections (paper eq. 1-6) against exact synthetic truth.
 
 Planes are fitted to the pixels of each true plane id of frames rendered by
-`planeslam.synth.render_frame` (Kinect-like noise), so these tests exercise
+`planeslam.sim.render.render_frame` (Kinect-like noise), so these tests exercise
 the intersection stage independently of the segmentation stage.
 `segmentation_from_render` and `visible_fraction` are reused by test_objects.py.
 """
@@ -13,18 +13,14 @@ import functools
 import numpy as np
 import pytest
 
-from planeslam.camera import CameraConfig, PixelRays
-from planeslam.errors import ConfigError, GeometryError
-from planeslam.geometry import invert_pose, plane_line, transform_plane, transform_points
-from planeslam.intersections import (
-    IntersectionConfig,
-    candidate_pairs,
-    find_intersections,
-    intersection_lines,
-)
-from planeslam.segmentation import Plane, Segmentation
-from planeslam.synth import SCENES, Box, Panel, Structure, make_scene, render_frame
-from planeslam.synth_scenes import look_at
+from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.errors import ConfigError, GeometryError
+from planeslam.core.geometry import invert_pose, plane_line, transform_plane, transform_points
+from planeslam.frontend.config import IntersectionConfig
+from planeslam.frontend.intersections import candidate_pairs, find_intersections, intersection_lines
+from planeslam.frontend.segmentation import Plane, Segmentation
+from planeslam.sim.render import SCENES, render_frame
+from planeslam.sim.scenes import Box, Panel, Structure, look_at, make_scene
 
 CAMERA = CameraConfig()
 

@@ -11,13 +11,13 @@ import pytest
 from helpers import assert_pose_close
 from scipy.spatial.transform import Rotation
 
-from planeslam.errors import AssociationError, ConfigError
+from planeslam.core.errors import AssociationError, ConfigError
+from planeslam.core.geometry import angle_between, invert_pose
 from planeslam.factors import LandmarkConfig, LandmarkKeys, PlaneLandmarks
-from planeslam.geometry import angle_between, invert_pose
-from planeslam.synth_scenes import Scene, box_room_circle
+from planeslam.sim.scenes import Scene, box_room_circle
 
 # ---------------------------------------------------------------- synthetic observations
-# Stand-ins with the fields the landmark code reads from planeslam.frontend.FrameObservation.
+# Stand-ins with the fields the landmark code reads from a FrameObservation.
 
 TAN_HALF_FOV = (0.55, 0.41)  # about 58 x 45 deg, a Kinect-like field of view
 MAX_RANGE_M = 6.0

@@ -10,16 +10,17 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from planeslam.errors import AssociationError, ConfigError
-from planeslam.frontend import FrameObservation
-from planeslam.geometry import invert_pose, pose_from_quat, transform_points
-from planeslam.intersections import Edge
-from planeslam.map import Map, MapConfig, MapError, hull_on_plane
-from planeslam.objects import FrameStructure
-from planeslam.plane_fit import moments_of, plane_from_moments
-from planeslam.plane_graph import Corner
-from planeslam.segmentation import Plane, Segmentation
-from planeslam.synth_scenes import get_scene
+from planeslam.core.errors import AssociationError, ConfigError
+from planeslam.core.geometry import invert_pose, pose_from_quat, transform_points
+from planeslam.core.plane_fit import moments_of, plane_from_moments
+from planeslam.frontend.intersections import Edge
+from planeslam.frontend.objects import FrameStructure
+from planeslam.frontend.pipeline import FrameObservation
+from planeslam.frontend.plane_graph import Corner
+from planeslam.frontend.segmentation import Plane, Segmentation
+from planeslam.mapping.config import MapConfig
+from planeslam.mapping.map import Map, MapError, hull_on_plane
+from planeslam.sim.scenes import get_scene
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -558,12 +559,12 @@ def test_memory_bytes_has_every_part_and_sums_to_the_total(rng):
 def test_true_pose_merge_of_box_room_circle_sizes_box_and_room(tmp_path):
     """The paper's experiment with the true poses (no tracking): 24 rendered frames
     through the front end, associated with the map and merged."""
-    from planeslam.association import associate_with_corners
     from planeslam.config import resolve_config
-    from planeslam.dataset import TumDataset
-    from planeslam.frontend import FrontEnd
-    from planeslam.synth import load_truth, synthesize
-    from planeslam.trajectory import read_tum
+    from planeslam.frontend.pipeline import FrontEnd
+    from planeslam.io.dataset import TumDataset
+    from planeslam.io.trajectory import read_tum
+    from planeslam.sim.render import load_truth, synthesize
+    from planeslam.tracking.association import associate_with_corners
 
     root = Path(tmp_path) / "brc"
     synthesize("box_room_circle", root, seed=0)
@@ -613,7 +614,7 @@ def test_true_pose_merge_of_box_room_circle_sizes_box_and_room(tmp_path):
 
 
 def test_seat_segments_puts_segments_on_the_line_and_keeps_parallel_pairs():
-    from planeslam.map import seat_segments
+    from planeslam.mapping.map import seat_segments
 
     n1 = np.array([[0.0, 0, 1], [0, 0, 1]])
     n2 = np.array([[1.0, 0, 0], [0, 0, -1]])  # second pair parallel

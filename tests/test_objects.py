@@ -16,20 +16,20 @@ from test_intersections import (
     segmentation_from_render,
 )
 
-from planeslam.errors import ConfigError
-from planeslam.geometry import invert_pose, transform_points
-from planeslam.intersections import Edge
-from planeslam.objects import (
+from planeslam.core.errors import ConfigError
+from planeslam.core.geometry import invert_pose, transform_points
+from planeslam.frontend.config import ObjectConfig
+from planeslam.frontend.intersections import Edge
+from planeslam.frontend.objects import (
     DEFAULT_PATTERNS,
     MAP_SCHEMA,
-    ObjectConfig,
     ObjectPattern,
     build_structure,
     classify_object,
     measure_size,
     to_map_dict,
 )
-from planeslam.plane_graph import (
+from planeslam.frontend.plane_graph import (
     aggregate_corners,
     build_plane_graph,
     estimate_gravity,
@@ -38,7 +38,7 @@ from planeslam.plane_graph import (
     plane_orientation,
     snap_edges_to_corners,
 )
-from planeslam.segmentation import Plane, Segmentation
+from planeslam.frontend.segmentation import Plane, Segmentation
 
 UP = np.array([0.0, -1.0, 0.0])
 
@@ -396,7 +396,7 @@ def _room_graph(with_ceiling: bool):
     ("with_ceiling", "expected"), [(False, (4.0, 3.5)), (True, (4.0, 3.5, 2.5))]
 )
 def test_room_height_only_when_floor_and_ceiling_bound_it(with_ceiling, expected) -> None:
-    from planeslam.objects import measure_size
+    from planeslam.frontend.objects import measure_size
 
     g = _room_graph(with_ceiling)
     planes = set(g.nodes)

@@ -11,12 +11,8 @@ import pytest
 from conftest import shared_sequence
 from scipy import ndimage
 
-from planeslam.camera import CameraConfig, PixelRays
-from planeslam.config import PlaneSlamConfig
-from planeslam.errors import ConfigError, DatasetFormatError
-from planeslam.frame_command import process_frame
-from planeslam.frontend import FrontEnd
-from planeslam.overlay import (
+from planeslam.app.frame import process_frame
+from planeslam.app.overlay import (
     CONCAVE_RGB,
     CONVEX_RGB,
     CORNER_RGB,
@@ -26,7 +22,11 @@ from planeslam.overlay import (
     project_points,
     write_png,
 )
-from planeslam.synth import synthesize
+from planeslam.config import PlaneSlamConfig
+from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.errors import ConfigError, DatasetFormatError
+from planeslam.frontend.pipeline import FrontEnd
+from planeslam.sim.render import synthesize
 
 SMALL = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 

@@ -7,9 +7,9 @@ import pytest
 from helpers import assert_pose_close
 from scipy.spatial.transform import Rotation
 
-from planeslam.errors import GeometryError
-from planeslam.geometry import invert_pose, transform_points
-from planeslam.registration import (
+from planeslam.core.errors import GeometryError
+from planeslam.core.geometry import invert_pose, transform_points
+from planeslam.tracking.registration import (
     RegistrationStatus,
     pose_from_planes,
     pose_from_planes_and_points,

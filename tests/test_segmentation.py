@@ -8,19 +8,20 @@ import dataclasses
 import numpy as np
 import pytest
 
-from planeslam.camera import CameraConfig, PixelRays
-from planeslam.errors import ConfigError, GeometryError
-from planeslam.plane_fit import (
+from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.errors import ConfigError, GeometryError
+from planeslam.core.geometry import tangent_basis
+from planeslam.core.plane_fit import (
     merge_moments,
     moments_of,
     plane_covariance,
     plane_from_moments,
     smallest_eigh3,
-    tangent_basis,
 )
-from planeslam.segmentation import Segmentation, SegmentationConfig, segment_planes
-from planeslam.synth import plane_in_camera, render_frame
-from planeslam.synth_scenes import get_scene
+from planeslam.frontend.config import SegmentationConfig
+from planeslam.frontend.segmentation import Segmentation, segment_planes
+from planeslam.sim.render import plane_in_camera, render_frame
+from planeslam.sim.scenes import get_scene
 from tests.conftest import shared_sequence
 
 CAMERA = CameraConfig()  # 640 x 480, f = 525
@@ -307,7 +308,7 @@ def test_bad_camera_argument_and_config():
 @pytest.mark.data
 def test_redkitchen_frame0_big_planes():
     from planeslam.config import resolve_config
-    from planeslam.dataset import TumDataset
+    from planeslam.io.dataset import TumDataset
 
     root = shared_sequence("7scenes_redkitchen_1000f")
     cfg = resolve_config(root)

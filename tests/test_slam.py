@@ -9,15 +9,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from planeslam.app.runner import run_sequence
 from planeslam.config import resolve_config
-from planeslam.dataset import TumDataset
-from planeslam.errors import ConfigError, DatasetFormatError
+from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
-from planeslam.map import Map
-from planeslam.runner import run_sequence
+from planeslam.io.dataset import TumDataset
+from planeslam.io.trajectory import read_tum
+from planeslam.mapping.map import Map
+from planeslam.sim.render import synthesize
 from planeslam.slam import SLAM, run_frames
-from planeslam.synth import synthesize
-from planeslam.trajectory import read_tum
 
 
 @pytest.fixture(scope="module")

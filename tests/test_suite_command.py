@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from planeslam.errors import ConfigError
+from planeslam.core.errors import ConfigError
 from planeslam.eval.suite import load_suite, run_suite_command
 
 

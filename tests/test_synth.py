@@ -9,23 +9,21 @@ import numpy as np
 import pytest
 from helpers import assert_pose_close
 
-from planeslam.camera import CameraConfig, PixelRays
 from planeslam.config import load_camera_yaml, resolve_config
-from planeslam.dataset import TumDataset
-from planeslam.errors import ConfigError, DatasetFormatError
-from planeslam.geometry import pose_from_quat
-from planeslam.synth import (
+from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.errors import ConfigError, DatasetFormatError
+from planeslam.core.geometry import pose_from_quat
+from planeslam.io.dataset import TumDataset
+from planeslam.sim.render import (
     SCENES,
     TRUTH_SCHEMA,
     KinectNoise,
-    get_scene,
     load_truth,
-    look_at,
-    make_scene,
     plane_in_camera,
     render_frame,
     synthesize,
 )
+from planeslam.sim.scenes import get_scene, look_at, make_scene
 
 SMALL = CameraConfig(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120)
 HALF = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)

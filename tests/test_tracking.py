@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from helpers import assert_pose_close
 
-from planeslam.errors import ConfigError
-from planeslam.geometry import invert_pose, pose_from_quat, transform_plane
-from planeslam.tracking import FrameView, MapView, Tracker, TrackingConfig
+from planeslam.core.errors import ConfigError
+from planeslam.core.geometry import invert_pose, pose_from_quat, transform_plane
+from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.tracker import FrameView, MapView, Tracker
 
 # A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
 # visible corner is at (1.0, 0.8, 0.2); every normal faces the camera side (+x, +y, +z),

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from planeslam.errors import DatasetFormatError
-from planeslam.geometry import invert_pose, pose_from_quat, quat_from_pose
-from planeslam.trajectory import Trajectory, TumWriter, read_tum, write_tum
+from planeslam.core.errors import DatasetFormatError
+from planeslam.core.geometry import invert_pose, pose_from_quat, quat_from_pose
+from planeslam.io.trajectory import Trajectory, TumWriter, read_tum, write_tum
 
 
 def random_trajectory(rng: np.random.Generator, n: int = 20) -> Trajectory:

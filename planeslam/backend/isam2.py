@@ -1,0 +1,322 @@
+"""iSAM2 backend: keyframe poses, plane and corner landmarks, incremental smoothing.
+
+Variables: keyframe poses T_world_cam (Pose3, key `keys.pose(index)`), plane
+landmarks (OrientedPlane3, world frame) and corner landmarks (Point3, world
+frame [m]) from `planeslam.factors.PlaneLandmarks`. Factors per keyframe: a
+prior on the first, a BetweenFactorPose3 from the previous keyframe on every
+other one (so no pose is ever constrained by planes alone), and the landmark
+factors of its observation. One `ISAM2.update` per keyframe (plus
+`extra_updates` relinearising iterations).
+
+An indeterminate system ("Indeterminate linear system", a RuntimeError from
+gtsam) never escapes: iSAM2 is not exception safe, so it is rebuilt from the
+committed factors and the last estimate, the landmark named in the message (or,
+failing that, every new landmark, then every landmark factor of the keyframe) is
+dropped for this keyframe and the update retried.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import re
+import time
+from collections.abc import Iterable, Mapping
+from typing import TYPE_CHECKING
+
+import gtsam
+import numpy as np
+
+from planeslam.backend.config import BackendConfig
+from planeslam.core.errors import ConfigError, GeometryError
+from planeslam.core.geometry import as_pose, invert_pose
+from planeslam.factors.config import LandmarkKeys
+from planeslam.factors.landmarks import AddedFactors, PlaneLandmarks
+
+if TYPE_CHECKING:
+    from planeslam.frontend.pipeline import FrameObservation
+
+logger = logging.getLogger(__name__)
+
+_KEY_IN_MESSAGE = re.compile(r"near variable\s+(\d+)")
+
+
+def is_keyframe(
+    config: BackendConfig, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int
+) -> bool:
+    """Whether a frame at T_now (4, 4) becomes a keyframe after the one at T_last_kf (4, 4).
+
+    True when it moved at least `keyframe_min_translation_m`, turned at least
+    `keyframe_min_rotation_deg`, or is `keyframe_max_frames` frames after it.
+    """
+    T_rel = invert_pose(as_pose(T_last_kf, "T_last_kf")) @ as_pose(T_now, "T_now")
+    cos = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(
+        frames_since >= config.keyframe_max_frames
+        or np.linalg.norm(T_rel[:3, 3]) >= config.keyframe_min_translation_m
+        or math.degrees(math.acos(cos)) >= config.keyframe_min_rotation_deg
+    )
+
+
+class Isam2Backend:
+    """Incremental smoothing of keyframe poses and plane / corner landmarks with iSAM2."""
+
+    def __init__(self, config: BackendConfig | None = None) -> None:
+        self.config = config or BackendConfig()
+        self.keys = self.config.keys
+        self.landmarks = PlaneLandmarks(self.keys, self.config.landmarks)
+        self._params = gtsam.ISAM2Params()
+        self._params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        self._params.relinearizeSkip = self.config.relinearize_skip
+        self._isam: gtsam.ISAM2 | None = None  # made by `_rebuild` on the first update
+        self._theta: gtsam.Values | None = None
+        self._graph = gtsam.NonlinearFactorGraph()  # every committed factor, for rebuilds
+        self._estimate = gtsam.Values()
+        self._timestamps: dict[int, float] = {}
+        self._last_index: int | None = None
+        self.update_ms: list[float] = []
+        """Wall-clock ms of the iSAM2 work per keyframe (updates, retries, estimate)."""
+        self.failures: int = 0
+        """Indeterminate updates caught and handled so far."""
+
+    # ------------------------------------------------------------------ queries
+
+    @property
+    def num_factors(self) -> int:
+        """Factors in the smoother."""
+        return int(self._graph.size())
+
+    @property
+    def estimate(self) -> gtsam.Values:
+        """A copy of the current estimate of every variable."""
+        return gtsam.Values(self._estimate)
+
+    def keyframe_poses(self) -> dict[int, tuple[float, np.ndarray]]:
+        """Keyframe index -> (timestamp [s], optimised T_world_cam (4, 4)), increasing index."""
+        return {
+            i: (t, self._estimate.atPose3(self.keys.pose(i)).matrix())
+            for i, t in self._timestamps.items()
+        }
+
+    def plane_estimates(
+        self, ids: Iterable[int] | None = None
+    ) -> dict[int, tuple[np.ndarray, float]]:
+        """Plane landmark id -> (n_world (3,), d_world [m]), optimised (all, or `ids`)."""
+        return self.landmarks.plane_estimates(ids)
+
+    def corner_estimates(self, ids: Iterable[int] | None = None) -> dict[int, np.ndarray]:
+        """Corner landmark id -> p_world (3,) [m], optimised (all, or `ids`)."""
+        return self.landmarks.corner_estimates(ids)
+
+    # ------------------------------------------------------------------ update
+
+    def add_keyframe(
+        self,
+        index: int,
+        timestamp: float,
+        T_world_cam_guess: np.ndarray,
+        observation: FrameObservation,
+        plane_ids: Mapping[int, int],
+        corner_ids: Mapping[int, int] | None = None,
+        odometry_T_prev_cur: np.ndarray | None = None,
+        odometry_sigmas: tuple[float, float] | np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Add keyframe `index` with its observation, update iSAM2 -> optimised T_world_cam (4, 4).
+
+        index: frame index, strictly increasing; T_world_cam_guess (4, 4): initial
+        pose (initialises new landmarks too); plane_ids / corner_ids: association of
+        the observation to landmark ids (see `PlaneLandmarks.add_observations`, or
+        `self.landmarks.associate`). odometry_T_prev_cur (4, 4): measured pose of
+        this keyframe in the previous keyframe's camera frame; None derives it from
+        the guess and the previous optimised pose. odometry_sigmas: (rot [rad],
+        trans [m]) or (6,) sigmas (rotation first) overriding the config's.
+        """
+        if isinstance(index, bool) or int(index) != index:
+            raise ConfigError(f"keyframe index {index!r}: expected an integer")
+        index = int(index)
+        if self._last_index is not None and index <= self._last_index:
+            raise ConfigError(
+                f"keyframe index {index}: expected > the previous keyframe {self._last_index}"
+            )
+        T_guess = as_pose(T_world_cam_guess, "T_world_cam_guess")
+        pose_key = self.keys.pose(index)
+        pose_graph = gtsam.NonlinearFactorGraph()
+        if self._last_index is None:
+            cfg = self.config
+            sigmas = np.r_[[cfg.prior_sigma_rot_rad] * 3, [cfg.prior_sigma_trans_m] * 3]
+            pose_graph.add(
+                gtsam.PriorFactorPose3(
+                    pose_key, gtsam.Pose3(T_guess), gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+                )
+            )
+        else:
+            prev_key = self.keys.pose(self._last_index)
+            if odometry_T_prev_cur is None:
+                T_prev = self._estimate.atPose3(prev_key).matrix()
+                T_prev_cur = invert_pose(T_prev) @ T_guess
+            else:
+                T_prev_cur = as_pose(odometry_T_prev_cur, "odometry_T_prev_cur")
+            pose_graph.add(
+                gtsam.BetweenFactorPose3(
+                    prev_key,
+                    pose_key,
+                    gtsam.Pose3(T_prev_cur),
+                    gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(odometry_sigmas)),
+                )
+            )
+        landmark_graph = gtsam.NonlinearFactorGraph()
+        landmark_values = gtsam.Values()
+        added = self.landmarks.add_observations(
+            landmark_graph,
+            landmark_values,
+            pose_key,
+            T_guess,
+            observation,
+            plane_ids,
+            corner_ids,
+        )
+        start = time.perf_counter()
+        kept = self._update_with_retries(pose_key, T_guess, pose_graph, added, landmark_values)
+        self._estimate = self._isam.calculateEstimate()
+        self.update_ms.append((time.perf_counter() - start) * 1e3)
+        for factor in kept:
+            self._graph.add(factor)
+        self.landmarks.update_estimates(self._estimate)
+        self._timestamps[index] = float(timestamp)
+        self._last_index = index
+        return self._estimate.atPose3(pose_key).matrix()
+
+    def _odometry_sigmas(self, sigmas: tuple[float, float] | np.ndarray | None) -> np.ndarray:
+        if sigmas is None:
+            sigmas = (self.config.odometry_sigma_rot_rad, self.config.odometry_sigma_trans_m)
+        s = np.asarray(sigmas, dtype=np.float64).reshape(-1)
+        if s.shape == (2,):
+            s = np.repeat(s, 3)
+        if s.shape != (6,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
+            raise ConfigError(
+                f"odometry_sigmas={sigmas!r}: expected (rot [rad], trans [m]) or (6,) "
+                "positive sigmas"
+            )
+        return s
+
+    def _update_with_retries(
+        self,
+        pose_key: int,
+        T_guess: np.ndarray,
+        pose_graph: gtsam.NonlinearFactorGraph,
+        added: AddedFactors,
+        landmark_values: gtsam.Values,
+    ) -> list[gtsam.NonlinearFactor]:
+        """One iSAM2 update with this keyframe's factors; on an indeterminate system,
+        rebuild and retry with fewer landmark factors. Returns the factors committed."""
+        if self._isam is None:
+            self._rebuild()
+        new_keys = set(added.new_keys)
+        dropped: set[int] = set()
+        level = 0  # 0: drop named keys, 1: drop all new landmarks, 2: drop all landmark factors
+        while True:
+            factors = [pose_graph.at(i) for i in range(pose_graph.size())]
+            for factor in added.factors:
+                keys = set(factor.keys())
+                if level >= 2 or keys & dropped or (level >= 1 and keys & new_keys):
+                    continue
+                factors.append(factor)
+            used = {k for f in factors for k in f.keys()}
+            graph = gtsam.NonlinearFactorGraph()
+            for factor in factors:
+                graph.add(factor)
+            values = gtsam.Values()
+            values.insert(pose_key, gtsam.Pose3(T_guess))
+            for key in added.new_keys:
+                if key in used:
+                    values.insert(key, _value_of(landmark_values, key, self.keys))
+            try:
+                self._isam.update(graph, values)
+                for _ in range(self.config.extra_updates):
+                    self._isam.update()
+            except RuntimeError as exc:
+                self.failures += 1
+                message = " ".join(str(exc).split())
+                match = _KEY_IN_MESSAGE.search(message)
+                bad = int(match.group(1)) if match else None
+                logger.warning(
+                    "iSAM2 update at %s failed (%s); rebuilding and retrying",
+                    gtsam.DefaultKeyFormatter(pose_key),
+                    message[:120],
+                )
+                self._rebuild()
+                if level == 0 and bad is not None and bad != pose_key and bad not in dropped:
+                    dropped.add(bad)
+                elif level < 2:
+                    level += 1
+                else:
+                    raise GeometryError(
+                        f"iSAM2 cannot add pose {gtsam.DefaultKeyFormatter(pose_key)} even with "
+                        f"odometry only: {message[:200]}"
+                    ) from None
+                continue
+            lost = [k for k in added.new_keys if k not in used]
+            if lost:
+                lost_planes = tuple(j for j in added.new_planes if self.keys.plane(j) in lost)
+                lost_corners = tuple(c for c in added.new_corners if self.keys.corner(c) in lost)
+                self.landmarks.forget(lost_planes, lost_corners)
+                logger.warning(
+                    "dropped %d new plane and %d new corner landmarks at %s",
+                    len(lost_planes),
+                    len(lost_corners),
+                    gtsam.DefaultKeyFormatter(pose_key),
+                )
+            return factors
+
+    def optimize_batch(self, max_iterations: int = 20) -> float:
+        """Gauss-Newton on every committed factor from the current estimate (the final
+        global optimisation of a run: iSAM2 relinearises lazily online): a fresh iSAM2
+        that relinearises every variable on each of its `max_iterations` updates. Updates
+        the estimate, the landmark table and the smoother; returns the wall-clock ms.
+
+        Not gtsam's batch optimisers: they hand the Python factors a copy of the whole
+        Values per call (O(variables) each), iSAM2 hands them its held linearisation point.
+        """
+        if not self._graph.size() or max_iterations < 1:
+            return 0.0
+        start = time.perf_counter()
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(0.0)
+        params.relinearizeSkip = 1
+        isam, _theta = _new_isam2(params)  # the handle lives as long as `isam` here
+        try:
+            isam.update(self._graph, self._estimate)
+            for _ in range(int(max_iterations) - 1):
+                isam.update()
+            estimate = isam.calculateEstimate()
+        except RuntimeError as exc:  # an indeterminate batch keeps the iSAM2 estimate
+            logger.warning("batch optimisation failed (%s); keeping the iSAM2 estimate", exc)
+            return (time.perf_counter() - start) * 1e3
+        self._estimate = estimate
+        self.landmarks.update_estimates(self._estimate)
+        self._isam = self._theta = None  # rebuilt at the estimate if another keyframe comes
+        return (time.perf_counter() - start) * 1e3
+
+    def _rebuild(self) -> None:
+        """A fresh iSAM2 from the committed factors, linearised at the last estimate."""
+        self._isam, self._theta = _new_isam2(self._params)
+        if self._graph.size():
+            self._isam.update(self._graph, self._estimate)
+
+
+def _new_isam2(params: gtsam.ISAM2Params) -> tuple[gtsam.ISAM2, gtsam.Values]:
+    """An ISAM2 and a Python handle on its linearisation point, to be kept as long as it.
+
+    pybind11 copies a C++ `const Values&` into a new Python object for every call of a
+    Python factor (`CustomFactor`) unless a Python object for that very Values exists:
+    without the handle each robust plane, corner and structural factor copies the whole
+    estimate each time iSAM2 linearises it, which made updates O(map size) per factor.
+    """
+    isam = gtsam.ISAM2(params)
+    return isam, isam.getLinearizationPoint()
+
+
+def _value_of(values: gtsam.Values, key: int, keys: LandmarkKeys):
+    if gtsam.Symbol(key).chr() == ord(keys.plane_char):
+        return values.atOrientedPlane3(key)
+    return values.atPoint3(key)

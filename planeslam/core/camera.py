@@ -1,0 +1,88 @@
+"""Pinhole camera model with depth-sensor conventions (scale, invalid values, distortion)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from planeslam.core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Intrinsics and depth encoding of an RGB-D camera (depth registered to colour)."""
+
+    fx: float = 525.0
+    """Focal length along x [pixels]."""
+    fy: float = 525.0
+    """Focal length along y [pixels]."""
+    cx: float = 319.5
+    """Principal point x [pixels]."""
+    cy: float = 239.5
+    """Principal point y [pixels]."""
+    width: int = 640
+    """Image width [pixels]."""
+    height: int = 480
+    """Image height [pixels]."""
+    depth_scale: float = 5000.0
+    """Depth PNG value per metre (TUM 5000, 7-Scenes 1000)."""
+    invalid_depth: tuple[int, ...] = (0,)
+    """Raw depth values meaning 'no measurement' (0 always; 65535 for 7-Scenes)."""
+    distortion: tuple[float, ...] = ()
+    """OpenCV radial-tangential coefficients k1 k2 p1 p2 k3; empty for none."""
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "depth_scale"):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(f"camera.{name} must be > 0, got {getattr(self, name)!r}")
+        if self.width <= 0 or self.height <= 0:
+            raise ConfigError(f"camera size must be positive, got {self.width}x{self.height}")
+        if len(self.distortion) not in (0, 4, 5, 8):
+            raise ConfigError(
+                f"camera.distortion needs 0, 4, 5 or 8 coefficients, got {len(self.distortion)}"
+            )
+        object.__setattr__(self, "invalid_depth", tuple(int(v) for v in self.invalid_depth))
+        object.__setattr__(self, "distortion", tuple(float(v) for v in self.distortion))
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def is_distorted(self) -> bool:
+        return any(abs(c) > 0 for c in self.distortion)
+
+    def with_overrides(self, text: str) -> CameraConfig:
+        """Apply a command-line override 'fx,fy,cx,cy[,depth_scale]'."""
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            values = []
+        if len(values) not in (4, 5):
+            raise ConfigError(
+                f"--camera expects 'fx,fy,cx,cy[,depth_scale]' (4 or 5 numbers), got {text!r}"
+            )
+        changes = dict(zip(("fx", "fy", "cx", "cy", "depth_scale"), values, strict=False))
+        return replace(self, **changes)  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class PixelRays:
+    """Per-pixel viewing rays for one camera, precomputed once.
+
+    `rays[v, u]` is the camera-frame point at depth 1 m seen by pixel (u, v),
+    so the organised cloud is `depth_m[..., None] * rays` (x right, y down, z forward).
+    """
+
+    rays: np.ndarray = field(repr=False)
+    """(H, W, 3) float64 rays with z = 1."""
+
+    @classmethod
+    def for_camera(cls, camera: CameraConfig) -> PixelRays:
+        u, v = np.meshgrid(np.arange(camera.width), np.arange(camera.height))
+        rays = np.stack(
+            [(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1
+        )
+        return cls(rays=rays.astype(np.float64))

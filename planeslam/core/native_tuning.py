@@ -1,0 +1,65 @@
+"""Process-wide settings of native libraries, applied only where a caller asks.
+
+`single_native_threads`: one thread for each native library's pool (OpenCV, BLAS,
+OpenMP) within a block, restored afterwards. `keep_freed_memory`: a glibc
+allocator setting for the whole process; the CLI turns it on, the library never does.
+
+The pipeline brings its own parallelism: frames are read on a thread and the iSAM2
+backend runs in a process. Native pools that spread each call over both cores then
+fight those for them: beside a busy process, 60 7-Scenes frames took the front end
+3.3 s with the default pools and 0.65-0.93 s with one thread each (0.62 s alone).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import sys
+from collections.abc import Iterator
+
+log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def single_native_threads() -> Iterator[None]:
+    """Within the block, OpenCV and every pool threadpoolctl knows (OpenBLAS, MKL,
+    OpenMP) use one thread; the previous settings come back afterwards."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        cv2.setNumThreads(before)
+
+
+_MALLOC_TUNED = False
+
+
+def keep_freed_memory() -> bool:
+    """Ask glibc malloc to serve blocks up to 32 MB from its heap and keep freed memory
+    (mallopt M_MMAP_THRESHOLD = 32 MB, M_TRIM_THRESHOLD = 256 MB), once per process.
+
+    By default every array above 128 kB is a fresh mmap that the kernel zero-fills
+    page by page on first touch and unmaps on free: per 640x480 frame the front end
+    makes dozens of such arrays, and those page faults cost about a sixth of its
+    time. Returns True when applied; a no-op (False) off Linux/glibc.
+    """
+    global _MALLOC_TUNED
+    if _MALLOC_TUNED:
+        return True
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        ok = libc.mallopt(-3, 32 * 1024 * 1024) == 1  # M_MMAP_THRESHOLD
+        ok &= libc.mallopt(-1, 256 * 1024 * 1024) == 1  # M_TRIM_THRESHOLD
+    except (OSError, AttributeError):
+        return False
+    _MALLOC_TUNED = bool(ok)
+    log.debug("malloc tuned for large temporaries: %s", _MALLOC_TUNED)
+    return _MALLOC_TUNED

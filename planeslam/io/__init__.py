@@ -1,0 +1,1 @@
+"""Files: dataset readers (TUM layout) and trajectory files (TUM format)."""

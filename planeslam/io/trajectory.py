@@ -1,0 +1,122 @@
+"""Camera trajectories and the TUM trajectory file format.
+
+A TUM row is `timestamp tx ty tz qx qy qz qw`: the camera-to-world pose
+T_world_cam at that time (metres, seconds, quaternion xyzw).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from planeslam.core.errors import DatasetFormatError
+from planeslam.core.geometry import pose_from_quat, quat_from_pose
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Timestamped camera poses."""
+
+    timestamps: np.ndarray
+    """(N,) seconds, increasing."""
+    T_world_cam: np.ndarray
+    """(N, 4, 4) camera-to-world poses."""
+
+    def __post_init__(self) -> None:
+        if self.timestamps.shape[0] != self.T_world_cam.shape[0]:
+            raise ValueError("timestamps and poses differ in length")
+
+    def __len__(self) -> int:
+        return int(self.timestamps.shape[0])
+
+    @property
+    def positions(self) -> np.ndarray:
+        """(N, 3) camera centres in the world frame [m]."""
+        return self.T_world_cam[:, :3, 3]
+
+    def path_length_m(self) -> float:
+        return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum())
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file; '#' comments and blank lines are skipped.
+
+    Raises DatasetFormatError naming the file and line on a malformed row,
+    and on a file with no poses.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetFormatError(f"{path}: trajectory file not found")
+    rows: list[list[float]] = []
+    with open(path, encoding="utf-8-sig") as fh:
+        for lineno, line in enumerate(fh, start=1):
+            text = line.strip()
+            if not text or text.startswith("#"):
+                continue
+            parts = text.replace(",", " ").split()
+            try:
+                values = [float(p) for p in parts]
+            except ValueError:
+                values = []
+            if len(values) != 8 or not np.all(np.isfinite(values)):
+                raise DatasetFormatError(
+                    f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', "
+                    f"got {text[:80]!r}"
+                )
+            rows.append(values)
+    if not rows:
+        raise DatasetFormatError(
+            f"{path}: no poses (expected rows 'timestamp tx ty tz qx qy qz qw')"
+        )
+    data = np.asarray(rows)
+    norms = np.linalg.norm(data[:, 4:8], axis=1)
+    if np.any(norms < 1e-6):
+        bad = int(np.argmin(norms))
+        raise DatasetFormatError(f"{path}: row {bad + 1} has a zero quaternion")
+    order = np.argsort(data[:, 0], kind="stable")
+    data = data[order]
+    return Trajectory(timestamps=data[:, 0], T_world_cam=pose_from_quat(data[:, 1:4], data[:, 4:8]))
+
+
+def format_tum_row(timestamp: float, T_world_cam: np.ndarray) -> str:
+    """One TUM row for one pose."""
+    t, q = quat_from_pose(T_world_cam)
+    values = " ".join(f"{v:.9f}" for v in (*t, *q))
+    return f"{timestamp:.6f} {values}\n"
+
+
+def write_tum(path: str | Path, trajectory: Trajectory, header: str = "") -> None:
+    """Write a whole trajectory as a TUM file."""
+    with TumWriter(path, header=header) as writer:
+        for stamp, T in zip(trajectory.timestamps, trajectory.T_world_cam, strict=True):
+            writer.write(float(stamp), T)
+
+
+class TumWriter:
+    """Append poses to a TUM file as they are estimated, flushing each row,
+    so an interrupted run keeps every pose it wrote."""
+
+    def __init__(self, path: str | Path, header: str = "") -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._fh: TextIO = open(self.path, "w", encoding="utf-8")
+        for line in header.splitlines() if header else []:
+            self._fh.write(f"# {line}\n")
+        self._fh.write("# timestamp tx ty tz qx qy qz qw\n")
+        self._fh.flush()
+
+    def write(self, timestamp: float, T_world_cam: np.ndarray) -> None:
+        self._fh.write(format_tum_row(timestamp, T_world_cam))
+        self._fh.flush()
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def __enter__(self) -> TumWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,49 @@
+"""Config of the world map, a leaf module: no algorithms."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from planeslam.core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Parameters of the world map: merging, objects and the sparse cloud (config section `map`)."""
+
+    voxel_m: float = 0.05
+    """Edge of a voxel of the sparse (non-planar) cloud [m]; one averaged point per voxel."""
+    sparse_max_points: int = 50_000
+    """Most voxels kept in the sparse cloud; beyond it the least-supported voxels are dropped."""
+    merge_max_angle_deg: float = 30.0
+    """Sanity gate on the given plane pairs: a pair whose normals (in the world frame) differ
+    by more than this is not merged and the observed plane becomes a new map plane [deg]."""
+    min_observations: int = 1
+    """Planes and edges seen in fewer frames are kept but left out of objects."""
+    derive_corners: bool = True
+    """Re-aggregation also adds the trihedral corners of the merged map graph that no single
+    frame saw (three edges observed in different frames), as the paper's re-initialisation."""
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.voxel_m, (int, float)) and self.voxel_m > 0):
+            raise ConfigError(f"map.voxel_m must be > 0 [m], got {self.voxel_m!r}")
+        if isinstance(self.sparse_max_points, bool) or not (
+            isinstance(self.sparse_max_points, int) and self.sparse_max_points >= 0
+        ):
+            raise ConfigError(
+                f"map.sparse_max_points must be a whole number >= 0, got {self.sparse_max_points!r}"
+            )
+        if not 0 < float(self.merge_max_angle_deg) <= 180:
+            raise ConfigError(
+                f"map.merge_max_angle_deg must be in (0, 180], got {self.merge_max_angle_deg!r}"
+            )
+        if isinstance(self.min_observations, bool) or not (
+            isinstance(self.min_observations, int) and self.min_observations >= 1
+        ):
+            raise ConfigError(
+                f"map.min_observations must be a whole number >= 1, got {self.min_observations!r}"
+            )
+        if not isinstance(self.derive_corners, bool):
+            raise ConfigError(
+                f"map.derive_corners must be true or false, got {self.derive_corners!r}"
+            )

@@ -1,0 +1,564 @@
+"""Synthetic RGB-D frames and sequences with exact truth (the project's built-in data).
+
+`render_frame` ray-casts a `Scene` (see `planeslam.sim.scenes`) from a pose
+and returns depth, colour and the id of the true plane seen by each pixel,
+with a Kinect-v1-like depth error model (`KinectNoise`). `synthesize` writes
+a whole named scene as a TUM-layout folder with `camera.yaml` and a
+`truth.json` holding the exact planes, objects, edges, corners and
+trajectory; `load_truth` reads it back.
+
+Depth error model (`KinectNoise`, defaults for a Kinect v1 / Xtion at 640x480):
+
+1. Axial noise, Gaussian with Nguyen, Izadi, Lovell (3DIMPVT 2012) sigma
+   sigma(z, theta) = 0.0012 + 0.0019 (z - 0.4)^2 + 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2
+   [m], z the true depth [m], theta the incidence angle between the viewing
+   ray and the surface normal [rad] (the last term matters only near grazing).
+2. Disparity quantisation: the Kinect measures disparity D = f * b / z [px]
+   in steps of 1/8 px (f = camera.fx, baseline b = 0.075 m), so the noisy depth
+   is snapped to z_q = f b / (round(8 f b / z) / 8); the step is z^2 / (8 f b),
+   about 1.3 cm at 2 m and 8 cm at 5 m for f = 525.
+3. Dropouts (depth 0): incidence beyond 85 deg always, between 75 and 85 deg
+   with a probability rising linearly from 0 to 1; at depth discontinuities
+   (neighbouring true depths differing by more than 5 % of the nearer one),
+   a 1-pixel band around the jump with probability 0.7; and 0.2 % of pixels at
+   random. Measured depths outside [0.4, 5.5] m are invalid (0).
+4. Colour: a procedural texture per plane in the plane's own (u, v)
+   coordinates (a hash of 2-5 cm cells, a checkerboard of 4 cells and the
+   plane's albedo), so it moves rigidly with the scene; Lambertian shading
+   under a fixed world light from above plus ambient light; sensor noise of
+   sigma 2 grey levels (uniform, which is cheap to draw).
+
+Not modelled: lateral noise, the projector's occlusion shadows (approximated
+by the discontinuity band), lens distortion, motion blur, rolling shutter.
+
+All randomness comes from the `numpy.random.Generator` passed in, in a fixed
+order, so the same seed gives identical bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from planeslam.core.camera import CameraConfig
+from planeslam.core.config import save_yaml, to_mapping
+from planeslam.core.errors import ConfigError, DatasetFormatError
+from planeslam.core.geometry import invert_pose, quat_from_pose
+from planeslam.io.trajectory import Trajectory, write_tum
+from planeslam.sim.scenes import (
+    SCENES,
+    WORLD_UP,
+    Box,
+    Panel,
+    Scene,
+    SceneCorner,
+    SceneEdge,
+    SceneObject,
+    ScenePlane,
+    Structure,
+    get_scene,
+    look_at,
+    make_scene,
+)
+
+__all__ = [
+    "SCENES",
+    "TRUTH_SCHEMA",
+    "WORLD_UP",
+    "Box",
+    "KinectNoise",
+    "Panel",
+    "RenderedFrame",
+    "Scene",
+    "SceneCorner",
+    "SceneEdge",
+    "SceneObject",
+    "ScenePlane",
+    "Structure",
+    "SynthResult",
+    "get_scene",
+    "load_truth",
+    "look_at",
+    "make_scene",
+    "plane_in_camera",
+    "render_frame",
+    "synthesize",
+    "truth_dict",
+]
+
+logger = logging.getLogger(__name__)
+
+TRUTH_SCHEMA = "planeslam.truth/1"
+_NEAR_CLIP_M = 0.05
+_LIGHT_WORLD = np.array([0.3, -0.45, 0.84]) / np.linalg.norm([0.3, -0.45, 0.84])
+_AMBIENT = 0.35
+
+
+@dataclass(frozen=True)
+class KinectNoise:
+    """Constants of the Kinect-v1-like depth and colour error model (module docstring)."""
+
+    baseline_m: float = 0.075
+    """Projector-camera baseline b [m]."""
+    disparity_step_px: float = 1.0 / 8.0
+    """Disparity quantisation step [px]."""
+    sigma_const_m: float = 0.0012
+    """Constant term of the axial sigma [m]."""
+    sigma_quad_m: float = 0.0019
+    """Coefficient of (z - 0.4)^2 in the axial sigma [1/m]."""
+    sigma_angle_m: float = 0.0001
+    """Coefficient of theta^2 / (pi/2 - theta)^2 / sqrt(z) in the axial sigma [m^1.5]."""
+    min_range_m: float = 0.4
+    """Nearest valid depth [m]."""
+    max_range_m: float = 5.5
+    """Farthest valid depth [m]."""
+    grazing_start_deg: float = 75.0
+    """Incidence angle where dropouts start [deg]."""
+    grazing_full_deg: float = 85.0
+    """Incidence angle beyond which depth is always missing [deg]."""
+    edge_jump_ratio: float = 0.05
+    """A depth discontinuity: neighbouring depths differ by more than this fraction."""
+    edge_dropout_prob: float = 0.7
+    """Probability of a dropout in the 1-pixel band around a discontinuity."""
+    random_dropout_prob: float = 0.002
+    """Probability of an isolated dropout anywhere."""
+    rgb_sigma: float = 2.0
+    """Colour noise sigma [grey levels]."""
+
+    def depth_sigma(self, z_m: np.ndarray, incidence_rad: np.ndarray | float = 0.0) -> np.ndarray:
+        """Axial noise sigma [m] at true depth z_m [m] and incidence angle [rad], any shape."""
+        z = np.asarray(z_m, dtype=np.float64)
+        theta = np.minimum(np.asarray(incidence_rad, dtype=np.float64), np.deg2rad(89.0))
+        angular = self.sigma_angle_m / np.sqrt(np.maximum(z, 1e-3)) * theta**2
+        return (
+            self.sigma_const_m
+            + self.sigma_quad_m * (z - 0.4) ** 2
+            + angular / (np.pi / 2 - theta) ** 2
+        )
+
+    def quantisation_step(self, z_m: np.ndarray, fx: float) -> np.ndarray:
+        """Depth step [m] of one disparity quantum at depth z_m [m]: z^2 step / (f b)."""
+        z = np.asarray(z_m, dtype=np.float64)
+        return z**2 * self.disparity_step_px / (fx * self.baseline_m)
+
+
+@dataclass(frozen=True)
+class RenderedFrame:
+    """One synthetic RGB-D frame and its exact truth."""
+
+    depth_m: np.ndarray = field(repr=False)
+    """(H, W) float32 measured depth along the optical axis [m]; 0 = invalid."""
+    rgb: np.ndarray = field(repr=False)
+    """(H, W, 3) uint8, RGB order."""
+    plane_id: np.ndarray = field(repr=False)
+    """(H, W) int32 id of the scene plane the pixel's ray hits first, -1 = none.
+    Set even where depth is invalid (range, dropouts): mask with depth_m > 0."""
+    depth_true_m: np.ndarray = field(repr=False)
+    """(H, W) float64 exact depth of that surface [m]; 0 where no plane is hit."""
+    incidence_rad: np.ndarray = field(repr=False)
+    """(H, W) float64 angle between the viewing ray and the plane normal [rad]."""
+    T_world_cam: np.ndarray = field(repr=False)
+    """(4, 4) camera-to-world pose the frame was rendered from."""
+
+
+def plane_in_camera(plane: ScenePlane, T_world_cam: np.ndarray) -> tuple[np.ndarray, float]:
+    """A scene plane in the camera frame, oriented toward the sensor: (n_cam (3,), d_cam [m])
+    with d_cam >= 0, as the segmentation reports observed planes."""
+    n_cam = T_world_cam[:3, :3].T @ plane.normal
+    d_cam = plane.d + float(plane.normal @ T_world_cam[:3, 3])
+    return (n_cam, d_cam) if d_cam >= 0 else (-n_cam, -d_cam)
+
+
+def _clip_polygon_near(poly_cam: np.ndarray, z_near: float) -> np.ndarray:
+    """Clip a convex (K, 3) camera-frame polygon to z >= z_near (Sutherland-Hodgman)."""
+    out = []
+    k = len(poly_cam)
+    for i in range(k):
+        a, b = poly_cam[i], poly_cam[(i + 1) % k]
+        a_in, b_in = a[2] >= z_near, b[2] >= z_near
+        if a_in:
+            out.append(a)
+        if a_in != b_in:
+            s = (z_near - a[2]) / (b[2] - a[2])
+            out.append(a + s * (b - a))
+    return np.array(out).reshape(-1, 3)
+
+
+def _pixel_window(poly_cam: np.ndarray, camera: CameraConfig) -> tuple[int, int, int, int] | None:
+    """Pixel bounding box (u0, u1, v0, v1), end-exclusive, of a camera-frame polygon."""
+    clipped = _clip_polygon_near(poly_cam, _NEAR_CLIP_M)
+    if len(clipped) < 3:
+        return None
+    u = camera.fx * clipped[:, 0] / clipped[:, 2] + camera.cx
+    v = camera.fy * clipped[:, 1] / clipped[:, 2] + camera.cy
+    u0 = max(int(np.floor(u.min())) - 1, 0)
+    u1 = min(int(np.ceil(u.max())) + 2, camera.width)
+    v0 = max(int(np.floor(v.min())) - 1, 0)
+    v1 = min(int(np.ceil(v.max())) + 2, camera.height)
+    if u0 >= u1 or v0 >= v1:
+        return None
+    return u0, u1, v0, v1
+
+
+def _cast(
+    scene: Scene, T_world_cam: np.ndarray, camera: CameraConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Exact ray casting -> depth (H,W) [m] (inf: no hit), plane id (H,W) int32,
+    plane coordinates u, v (H,W) [m] and (P,) camera-frame plane offsets |d_c| [m].
+    A loop over planes, each vectorised over its pixel window."""
+    H, W = camera.height, camera.width
+    xs = (np.arange(W) - camera.cx) / camera.fx
+    ys = (np.arange(H) - camera.cy) / camera.fy
+    depth = np.full((H, W), np.inf)
+    pid = np.full((H, W), -1, dtype=np.int32)
+    coord_u = np.zeros((H, W))
+    coord_v = np.zeros((H, W))
+    T_cam_world = invert_pose(T_world_cam)
+    R, t = T_cam_world[:3, :3], T_cam_world[:3, 3]
+    eye_world = T_world_cam[:3, 3]
+    offsets_cam = np.zeros(len(scene.planes))
+    for plane in scene.planes:
+        d_c = plane.d + float(plane.normal @ eye_world)
+        offsets_cam[plane.id] = abs(d_c)
+        if abs(d_c) < 1e-9 or (d_c < 0 and not plane.two_sided):
+            continue  # back face, or the camera lies in the plane
+        window = _pixel_window(plane.polygon @ R.T + t, camera)
+        if window is None:
+            continue
+        u0, u1, v0, v1 = window
+        n_c = R @ plane.normal
+        if d_c < 0:
+            n_c, d_c = -n_c, -d_c
+        c_c = R @ plane.centre + t
+        ax_c = plane.axes @ R.T
+        wx, wy = xs[u0:u1], ys[v0:v1]
+        denom = n_c[0] * wx[None, :] + (n_c[1] * wy[:, None] + n_c[2])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.where(denom < -1e-12, -d_c / denom, np.inf)
+        s0 = z * (ax_c[0, 0] * wx[None, :] + (ax_c[0, 1] * wy[:, None] + ax_c[0, 2]))
+        s0 -= float(c_c @ ax_c[0])
+        s1 = z * (ax_c[1, 0] * wx[None, :] + (ax_c[1, 1] * wy[:, None] + ax_c[1, 2]))
+        s1 -= float(c_c @ ax_c[1])
+        zwin = depth[v0:v1, u0:u1]
+        hit = np.abs(s0) <= plane.half_size_m[0]
+        hit &= np.abs(s1) <= plane.half_size_m[1]
+        hit &= z < zwin
+        zwin[hit] = z[hit]
+        pid[v0:v1, u0:u1][hit] = plane.id
+        coord_u[v0:v1, u0:u1][hit] = s0[hit]
+        coord_v[v0:v1, u0:u1][hit] = s1[hit]
+    return depth, pid, coord_u, coord_v, offsets_cam
+
+
+def _shade(
+    scene: Scene,
+    T_world_cam: np.ndarray,
+    pid: np.ndarray,
+    coord_u: np.ndarray,
+    coord_v: np.ndarray,
+) -> np.ndarray:
+    """Noise-free colour (H, W, 3) float32 in [0, 255]: per-plane texture in plane
+    coordinates times Lambertian shading under a fixed world light."""
+    P = len(scene.planes)
+    albedo = np.stack([p.albedo_rgb for p in scene.planes] + [np.zeros(3)]).astype(np.float32)
+    inv_cell = np.array([1.0 / p.texture_cell_m for p in scene.planes] + [1.0])
+    salt = np.array([p.texture_salt for p in scene.planes] + [0], dtype=np.int32)
+    eye = T_world_cam[:3, 3]
+    normals = np.stack([p.normal for p in scene.planes])
+    offsets = np.array([p.d for p in scene.planes])
+    facing = np.where(normals @ eye + offsets < 0, -1.0, 1.0)  # two-sided panels seen from behind
+    lambert = np.maximum(facing * (normals @ _LIGHT_WORLD), 0.0)
+    shade = np.append(_AMBIENT + (1.0 - _AMBIENT) * lambert, 0.0).astype(np.float32)
+    idx = np.where(pid < 0, P, pid)
+    inv_c = np.take(inv_cell, idx)
+    iu = np.floor(coord_u * inv_c).astype(np.int32)
+    iv = np.floor(coord_v * inv_c).astype(np.int32)
+    with np.errstate(over="ignore"):
+        h = ((iu * np.int32(73856093)) ^ (iv * np.int32(19349663)) ^ np.take(salt, idx)).view(
+            np.uint32
+        )
+        h = h * np.uint32(2654435761)
+    noise = ((h >> np.uint32(13)) & np.uint32(255)).astype(np.float32) * np.float32(1.0 / 255.0)
+    checker = ((np.right_shift(iu, 2) + np.right_shift(iv, 2)) & 1).astype(np.float32)
+    tex = np.float32(0.45) + np.float32(0.35) * noise + np.float32(0.2) * checker
+    tex *= np.take(shade * np.float32(255.0), idx)
+    return np.take(albedo, idx, axis=0) * tex[..., None]
+
+
+def render_frame(
+    scene: Scene,
+    T_world_cam: np.ndarray,
+    camera: CameraConfig,
+    rng: np.random.Generator,
+    noise: bool = True,
+    noise_model: KinectNoise | None = None,
+) -> RenderedFrame:
+    """Render one RGB-D frame of `scene` from the (4, 4) pose T_world_cam.
+
+    Camera frame x right, y down, z forward; pixel (u, v) looks along
+    ((u - cx) / fx, (v - cy) / fy, 1) (lens distortion is not simulated).
+    With `noise=False` depth is exact (float32) except outside the sensor's
+    range, and colour has no sensor noise; with `noise=True` the Kinect-v1
+    model of the module docstring applies, drawing from `rng` only.
+    """
+    model = noise_model or KinectNoise()
+    T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+    if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
+        raise ConfigError(
+            f"render_frame: T_world_cam must be a finite 4x4 pose, got shape {T_world_cam.shape}"
+        )
+    depth, pid, cu, cv, offsets_cam = _cast(scene, T_world_cam, camera)
+    hit = pid >= 0
+    depth_true = np.where(hit, depth, 0.0)
+    # Incidence from n . (z r) = -d: cos(theta) = |d_c| / (z |r|).
+    xs = (np.arange(camera.width) - camera.cx) / camera.fx
+    ys = (np.arange(camera.height) - camera.cy) / camera.fy
+    ray_norm = np.sqrt(xs[None, :] ** 2 + ys[:, None] ** 2 + 1.0)
+    d_pix = np.take(np.append(offsets_cam, 0.0), np.where(hit, pid, len(scene.planes)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cos_inc = np.where(hit, d_pix / (depth_true * ray_norm), 1.0)
+    incidence = np.arccos(np.clip(cos_inc, 0.0, 1.0))
+    colour = _shade(scene, T_world_cam, pid, cu, cv)
+
+    if not noise:
+        depth_m = depth_true.astype(np.float32)
+        in_range = (depth_true >= model.min_range_m) & (depth_true <= model.max_range_m)
+        depth_m[~in_range] = 0.0
+        rgb = np.rint(colour).clip(0, 255).astype(np.uint8)
+        return RenderedFrame(depth_m, rgb, pid, depth_true, incidence, T_world_cam.copy())
+
+    H, W = depth.shape
+    sigma = model.depth_sigma(np.where(hit, depth_true, 1.0), incidence)
+    z = depth_true + sigma * rng.standard_normal((H, W))
+    fb = camera.fx * model.baseline_m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        disparity = np.rint(fb / z / model.disparity_step_px) * model.disparity_step_px
+        z = np.where(hit & (disparity > 0), fb / disparity, 0.0)
+    valid = hit & (z >= model.min_range_m) & (z <= model.max_range_m)
+    # Grazing incidence dropouts.
+    lo, hi = np.deg2rad(model.grazing_start_deg), np.deg2rad(model.grazing_full_deg)
+    p_graze = np.clip((incidence - lo) / (hi - lo), 0.0, 1.0)
+    valid &= rng.random((H, W), dtype=np.float32) >= p_graze
+    # Depth-discontinuity dropouts: a 1-pixel band around jumps of the true depth.
+    zt = np.where(hit, depth_true, np.inf)
+    jump = np.zeros((H, W), dtype=bool)
+    with np.errstate(invalid="ignore"):
+        jx = np.abs(zt[:, 1:] - zt[:, :-1]) > model.edge_jump_ratio * np.minimum(
+            zt[:, 1:], zt[:, :-1]
+        )
+        jy = np.abs(zt[1:, :] - zt[:-1, :]) > model.edge_jump_ratio * np.minimum(
+            zt[1:, :], zt[:-1, :]
+        )
+    jump[:, 1:] |= jx
+    jump[:, :-1] |= jx
+    jump[1:, :] |= jy
+    jump[:-1, :] |= jy
+    valid &= ~(jump & (rng.random((H, W), dtype=np.float32) < model.edge_dropout_prob))
+    valid &= rng.random((H, W), dtype=np.float32) >= model.random_dropout_prob
+    depth_m = np.where(valid, z, 0.0).astype(np.float32)
+    # Colour noise: uniform with standard deviation rgb_sigma (one cheap draw).
+    scale = np.float32(model.rgb_sigma * np.sqrt(12.0))
+    colour += scale * (rng.random(colour.shape, dtype=np.float32) - np.float32(0.5))
+    rgb = np.rint(colour).clip(0, 255).astype(np.uint8)
+    return RenderedFrame(depth_m, rgb, pid, depth_true, incidence, T_world_cam.copy())
+
+
+# --------------------------------------------------------------------------- sequences
+
+
+@dataclass(frozen=True)
+class SynthResult:
+    """What `synthesize` wrote."""
+
+    out_dir: Path
+    """The sequence folder (TUM layout)."""
+    num_frames: int
+    """Number of RGB-D frames written."""
+    scene_name: str
+    """Name of the scene (a key of SCENES)."""
+    truth_path: Path
+    """truth.json."""
+    groundtruth_path: Path
+    """groundtruth.txt (TUM trajectory)."""
+    camera_path: Path
+    """camera.yaml (the CameraConfig keys)."""
+    rgb_paths: tuple[Path, ...] = field(repr=False)
+    """rgb/<timestamp>.png, one per frame."""
+    depth_paths: tuple[Path, ...] = field(repr=False)
+    """depth/<timestamp>.png (16-bit, value / depth_scale = metres), one per frame."""
+
+
+def _vec(a: np.ndarray) -> list[float]:
+    return [float(x) + 0.0 for x in np.asarray(a, dtype=np.float64).ravel()]  # no -0.0
+
+
+def _dump_truth(truth: dict[str, Any], path: Path) -> None:
+    """JSON with one line per plane, object, edge, corner and pose (readable, diffable)."""
+    lines = ["{"]
+    items = list(truth.items())
+    for k, (key, value) in enumerate(items):
+        comma = "," if k < len(items) - 1 else ""
+        if isinstance(value, list) and value and isinstance(value[0], (dict, list)):
+            rows = ",\n".join(f"  {json.dumps(v)}" for v in value)
+            lines.append(f" {json.dumps(key)}: [\n{rows}\n ]{comma}")
+        else:
+            lines.append(f" {json.dumps(key)}: {json.dumps(value)}{comma}")
+    lines.append("}")
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+def truth_dict(
+    scene: Scene, trajectory: Trajectory, camera: CameraConfig, seed: int
+) -> dict[str, Any]:
+    """The truth.json content (schema TRUTH_SCHEMA); world frame, metres, seconds."""
+    t, q = quat_from_pose(trajectory.T_world_cam)
+    rows = np.concatenate([trajectory.timestamps[:, None], t, q], axis=1)
+    return {
+        "schema": TRUTH_SCHEMA,
+        "scene": scene.name,
+        "seed": int(seed),
+        "world_up": _vec(WORLD_UP),
+        "camera": to_mapping(camera),
+        "planes": [
+            {
+                "id": p.id,
+                "name": p.name,
+                "object": p.object_id,
+                "normal": _vec(p.normal),
+                "d": float(p.d),
+                "two_sided": p.two_sided,
+                "polygon": (np.asarray(p.polygon).round(12) + 0.0).tolist(),
+            }
+            for p in scene.planes
+        ],
+        "objects": [
+            {
+                "id": o.id,
+                "name": o.name,
+                "class": o.object_class,
+                "planes": list(o.plane_ids),
+                "size_m": [float(s) for s in o.size_m],
+            }
+            for o in scene.objects
+        ],
+        "edges": [
+            {
+                "planes": list(e.plane_ids),
+                "length_m": e.length_m,
+                "segment": (e.segment.round(12) + 0.0).tolist(),
+            }
+            for e in scene.edges
+        ],
+        "corners": [{"planes": list(c.plane_ids), "point": _vec(c.point)} for c in scene.corners],
+        "trajectory": rows.tolist(),
+    }
+
+
+def load_truth(path: str | Path) -> dict[str, Any]:
+    """Read a truth.json (file or sequence folder); DatasetFormatError unless its
+    schema is TRUTH_SCHEMA."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / "truth.json"
+    try:
+        with open(path, encoding="utf-8") as fh:
+            data = json.load(fh)
+    except FileNotFoundError:
+        raise DatasetFormatError(f"{path}: truth file not found") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetFormatError(f"{path}: not a readable JSON file ({exc})") from None
+    schema = data.get("schema") if isinstance(data, dict) else None
+    if schema != TRUTH_SCHEMA:
+        raise DatasetFormatError(f"{path}: expected schema {TRUTH_SCHEMA!r}, got {schema!r}")
+    missing = [k for k in ("planes", "objects", "edges", "corners", "trajectory") if k not in data]
+    if missing:
+        raise DatasetFormatError(f"{path}: truth is missing key(s) {', '.join(missing)}")
+    return data
+
+
+def synthesize(
+    scene_name: str,
+    out_dir: str | Path,
+    frames: int | None = None,
+    seed: int = 0,
+    camera: CameraConfig | None = None,
+    noise: bool = True,
+) -> SynthResult:
+    """Render the named scene into `out_dir` as a TUM-layout sequence with truth.
+
+    Writes rgb/*.png, depth/*.png (16-bit, camera.depth_scale per metre, 0
+    invalid), rgb.txt, depth.txt, associations.txt, groundtruth.txt,
+    camera.yaml and truth.json. `frames` resamples the scene's path to that
+    many poses (None: the scene's default); `seed` drives the trajectory's
+    hand-shake and the sensor noise. ConfigError for an unknown scene name or
+    frames < 1.
+    """
+    if scene_name not in SCENES:
+        raise ConfigError(f"unknown scene {scene_name!r}; scenes: {', '.join(SCENES)}")
+    camera = camera or CameraConfig()
+    if camera.is_distorted:
+        raise ConfigError(
+            "synthesize renders an ideal pinhole camera: pass a CameraConfig with distortion=()"
+        )
+    if KinectNoise().max_range_m * camera.depth_scale > 65535:
+        raise ConfigError(
+            f"camera.depth_scale {camera.depth_scale} cannot store {KinectNoise().max_range_m} m "
+            "in a 16-bit depth PNG (need depth_scale <= 11915)"
+        )
+    traj_seq, noise_seq = np.random.SeedSequence(seed).spawn(2)
+    scene, trajectory = get_scene(scene_name, frames, np.random.default_rng(traj_seq))
+    rng = np.random.default_rng(noise_seq)
+    out = Path(out_dir)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    rgb_paths: list[Path] = []
+    depth_paths: list[Path] = []
+    names: list[str] = []
+    for stamp, T in zip(trajectory.timestamps, trajectory.T_world_cam, strict=True):
+        frame = render_frame(scene, T, camera, rng, noise=noise)
+        name = f"{stamp:.6f}.png"
+        raw = np.clip(np.rint(frame.depth_m.astype(np.float64) * camera.depth_scale), 0, 65535)
+        rgb_path, depth_path = out / "rgb" / name, out / "depth" / name
+        if not cv2.imwrite(str(depth_path), raw.astype(np.uint16)):
+            raise DatasetFormatError(f"{depth_path}: could not write the depth image")
+        if not cv2.imwrite(str(rgb_path), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)):
+            raise DatasetFormatError(f"{rgb_path}: could not write the colour image")
+        rgb_paths.append(rgb_path)
+        depth_paths.append(depth_path)
+        names.append(name)
+    stamps = [f"{s:.6f}" for s in trajectory.timestamps]
+    header = f"# planeslam synthetic scene {scene_name}, seed {seed}\n"
+    (out / "rgb.txt").write_text(
+        header
+        + "# timestamp filename\n"
+        + "".join(f"{s} rgb/{n}\n" for s, n in zip(stamps, names, strict=True))
+    )
+    (out / "depth.txt").write_text(
+        header
+        + "# timestamp filename\n"
+        + "".join(f"{s} depth/{n}\n" for s, n in zip(stamps, names, strict=True))
+    )
+    (out / "associations.txt").write_text(
+        "".join(f"{s} rgb/{n} {s} depth/{n}\n" for s, n in zip(stamps, names, strict=True))
+    )
+    write_tum(out / "groundtruth.txt", trajectory, header=f"planeslam synthetic {scene_name}")
+    save_yaml(camera, out / "camera.yaml")
+    truth_path = out / "truth.json"
+    _dump_truth(truth_dict(scene, trajectory, camera, seed), truth_path)
+    logger.info("wrote %d frames of %s to %s", len(names), scene_name, out)
+    return SynthResult(
+        out_dir=out,
+        num_frames=len(names),
+        scene_name=scene_name,
+        truth_path=truth_path,
+        groundtruth_path=out / "groundtruth.txt",
+        camera_path=out / "camera.yaml",
+        rgb_paths=tuple(rgb_paths),
+        depth_paths=tuple(depth_paths),
+    )

@@ -1,0 +1,577 @@
+"""Synthetic scenes with exact truth: boxes, rooms, panels, their planes, edges and corners.
+
+A scene is a set of oriented boxes (`kind='solid'`, seen from outside, or
+`kind='room'`, enclosing and seen from inside) and structures made of open
+rectangular panels (two-sided). Every box face and every panel becomes one
+world-frame `ScenePlane` with a stable integer id; `make_scene` also derives
+the true real intersections (edges: pairs of faces whose rectangles touch
+along a segment) and trihedral corners (three planes pairwise joined by
+edges meeting in one point).
+
+World frame: z up (gravity along -z), metres. Plane normals follow the
+library convention n . x + d = 0 with the normal on the visible side: out
+of a solid box, into a room; a two-sided panel's normal is its `rotation`
+third column.
+
+The named scenes (`box_room_circle`, `room_boxes_loop`, `zigzag_panels`)
+each return the scene and a camera `Trajectory` (T_world_cam, camera frame
+x right, y down, z forward).
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from planeslam.core.errors import ConfigError, GeometryError
+from planeslam.core.geometry import point_segment_distance
+from planeslam.io.trajectory import Trajectory
+
+WORLD_UP = np.array([0.0, 0.0, 1.0])
+"""World up direction (opposite to gravity) of every synthetic scene."""
+
+_FACE_AXES = (("+x", 0, 1.0), ("-x", 0, -1.0), ("+y", 1, 1.0), ("-y", 1, -1.0))
+_FACE_AXES += (("+z", 2, 1.0), ("-z", 2, -1.0))
+_ROOM_FACE_NAMES = {"+z": "ceiling", "-z": "floor"}
+_BOX_FACE_NAMES = {"+z": "top", "-z": "bottom"}
+_TOUCH_TOL_M = 1e-6
+
+
+def rot_z(yaw_rad: float) -> np.ndarray:
+    """(3, 3) rotation about the world z axis by `yaw_rad` [rad]."""
+    c, s = np.cos(yaw_rad), np.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True, eq=False)
+class Box:
+    """An oriented box: solid (seen from outside) or a room (seen from inside)."""
+
+    name: str
+    """Object name, used as the prefix of its face names ('box', 'room')."""
+    centre: np.ndarray
+    """(3,) box centre in the world frame [m]."""
+    size_m: np.ndarray
+    """(3,) full extents along the box's own x, y, z axes [m]."""
+    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    """(3, 3) R_world_box: columns are the box axes in the world frame."""
+    kind: Literal["solid", "room"] = "solid"
+    """'solid': faces point outward; 'room': faces point inward (camera inside)."""
+    omit_faces: tuple[str, ...] = ()
+    """Faces that do not exist as surfaces ('+x', '-x', '+y', '-y', '+z', '-z'),
+    e.g. ('-z',) for a box resting on the floor, whose bottom is never seen."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "centre", np.asarray(self.centre, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "size_m", np.asarray(self.size_m, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "rotation", np.asarray(self.rotation, dtype=np.float64))
+        if np.any(self.size_m <= 0):
+            raise ConfigError(f"box {self.name!r}: sizes must be > 0 m, got {self.size_m}")
+        if self.kind not in ("solid", "room"):
+            raise ConfigError(
+                f"box {self.name!r}: kind must be 'solid' or 'room', got {self.kind!r}"
+            )
+        R = self.rotation
+        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9):
+            raise ConfigError(f"box {self.name!r}: rotation is not a 3x3 orthonormal matrix")
+        bad = sorted(set(self.omit_faces) - {f for f, _, _ in _FACE_AXES})
+        if bad:
+            raise ConfigError(f"box {self.name!r}: unknown face(s) {bad}; faces: +x -x +y -y +z -z")
+
+
+@dataclass(frozen=True, eq=False)
+class Panel:
+    """An open rectangular panel, visible from both sides."""
+
+    name: str
+    """Panel name (unique within the scene)."""
+    centre: np.ndarray
+    """(3,) panel centre in the world frame [m]."""
+    size_m: np.ndarray
+    """(2,) full extents along the panel's first and second axes [m]."""
+    rotation: np.ndarray
+    """(3, 3) R_world_panel: columns are the width axis, the height axis and the normal."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "centre", np.asarray(self.centre, dtype=np.float64).reshape(3))
+        object.__setattr__(self, "size_m", np.asarray(self.size_m, dtype=np.float64).reshape(2))
+        object.__setattr__(self, "rotation", np.asarray(self.rotation, dtype=np.float64))
+        if np.any(self.size_m <= 0):
+            raise ConfigError(f"panel {self.name!r}: sizes must be > 0 m, got {self.size_m}")
+        R = self.rotation
+        if R.shape != (3, 3) or not np.allclose(R.T @ R, np.eye(3), atol=1e-9):
+            raise ConfigError(f"panel {self.name!r}: rotation is not a 3x3 orthonormal matrix")
+
+
+@dataclass(frozen=True, eq=False)
+class Structure:
+    """A rigid arrangement of panels forming one object of class 'structure'."""
+
+    name: str
+    panels: tuple[Panel, ...]
+
+
+@dataclass(frozen=True, eq=False)
+class ScenePlane:
+    """One planar rectangle of the scene, world frame, with its appearance."""
+
+    id: int
+    """Stable integer id (index into `Scene.planes`)."""
+    name: str
+    """'<object>.<face>', e.g. 'room.floor', 'box.top', 'zigzag.panel_2'."""
+    object_id: int
+    """Id of the object it belongs to (index into `Scene.objects`)."""
+    normal: np.ndarray
+    """(3,) unit normal, world frame, pointing to the visible side."""
+    d: float
+    """Offset [m]: normal . x + d = 0 for points x on the plane (world frame)."""
+    centre: np.ndarray
+    """(3,) rectangle centre, world frame [m]."""
+    axes: np.ndarray
+    """(2, 3) orthonormal in-plane axes u, v of the rectangle (world frame)."""
+    half_size_m: np.ndarray
+    """(2,) half extents along u and v [m]."""
+    two_sided: bool
+    """True for panels (visible from both sides), False for box and room faces."""
+    albedo_rgb: np.ndarray
+    """(3,) base reflectance in [0, 1]."""
+    texture_cell_m: float
+    """Cell size of the procedural texture [m]."""
+    texture_salt: int
+    """Per-plane salt of the texture hash."""
+
+    @property
+    def polygon(self) -> np.ndarray:
+        """(4, 3) rectangle corners, world frame [m], counter-clockwise in (u, v)."""
+        signs = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+        return self.centre + (signs * self.half_size_m) @ self.axes
+
+    @property
+    def area_m2(self) -> float:
+        return float(4.0 * self.half_size_m[0] * self.half_size_m[1])
+
+
+@dataclass(frozen=True, eq=False)
+class SceneObject:
+    """A physical object made of planes."""
+
+    id: int
+    name: str
+    object_class: Literal["box", "room", "structure"]
+    plane_ids: tuple[int, ...]
+    size_m: tuple[float, ...]
+    """True size [m]: a box's three extents largest first; a room's length, width,
+    height; a structure's world bounding-box extents largest first."""
+
+
+@dataclass(frozen=True, eq=False)
+class SceneEdge:
+    """A true real intersection of two planes."""
+
+    plane_ids: tuple[int, int]
+    """Smaller id first."""
+    segment: np.ndarray
+    """(2, 3) end points, world frame [m]."""
+
+    @property
+    def length_m(self) -> float:
+        return float(np.linalg.norm(self.segment[1] - self.segment[0]))
+
+
+@dataclass(frozen=True, eq=False)
+class SceneCorner:
+    """A true trihedral corner: three planes pairwise joined by edges."""
+
+    plane_ids: tuple[int, int, int]
+    """Increasing ids."""
+    point: np.ndarray
+    """(3,) corner point, world frame [m]."""
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """A complete synthetic scene; build it with `make_scene`."""
+
+    name: str
+    boxes: tuple[Box, ...]
+    structures: tuple[Structure, ...]
+    planes: tuple[ScenePlane, ...]
+    objects: tuple[SceneObject, ...]
+    edges: tuple[SceneEdge, ...]
+    corners: tuple[SceneCorner, ...]
+
+    def plane_by_name(self, name: str) -> ScenePlane:
+        """The plane called `name`; ConfigError listing the names when absent."""
+        return self._by_name(self.planes, "plane", name)
+
+    def object_by_name(self, name: str) -> SceneObject:
+        """The object called `name`; ConfigError listing the names when absent."""
+        return self._by_name(self.objects, "object", name)
+
+    def _by_name(self, items: tuple[Any, ...], kind: str, name: str) -> Any:
+        for item in items:
+            if item.name == name:
+                return item
+        raise ConfigError(
+            f"scene {self.name!r} has no {kind} {name!r}; {kind}s: "
+            + ", ".join(i.name for i in items)
+        )
+
+
+def _appearance(texture_seed: int, plane_id: int) -> tuple[np.ndarray, float, int]:
+    gen = np.random.default_rng([texture_seed, plane_id])
+    hue = Rotation.from_rotvec(np.array([1.0, 1.0, 1.0]) / np.sqrt(3) * gen.uniform(0, 2 * np.pi))
+    albedo = 0.6 + 0.35 * hue.apply(np.array([0.6, -0.3, -0.3]))
+    cell = float(gen.uniform(0.02, 0.05))
+    salt = int(gen.integers(1, 2**20))
+    return np.clip(albedo, 0.15, 0.95), cell, salt
+
+
+def _box_faces(box: Box) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """(face name, normal, centre, axes (2,3), half sizes (2,)) of a box's existing faces."""
+    faces = []
+    half = box.size_m / 2.0
+    names = _ROOM_FACE_NAMES if box.kind == "room" else _BOX_FACE_NAMES
+    for face, axis, sign in _FACE_AXES:
+        if face in box.omit_faces:
+            continue
+        outward = sign * box.rotation[:, axis]
+        centre = box.centre + outward * half[axis]
+        others = [a for a in range(3) if a != axis]
+        normal = -outward if box.kind == "room" else outward
+        label = names.get(face, f"wall_{face}" if box.kind == "room" else f"side_{face}")
+        faces.append((label, normal, centre, box.rotation[:, others].T.copy(), half[others]))
+    return faces
+
+
+def make_scene(
+    name: str,
+    boxes: tuple[Box, ...] = (),
+    structures: tuple[Structure, ...] = (),
+    texture_seed: int = 0,
+) -> Scene:
+    """Compile boxes and structures into planes (ids in order: boxes, then structures),
+    objects, true edges and true corners. Appearance is a fixed function of
+    (`texture_seed`, plane id)."""
+    planes: list[ScenePlane] = []
+    objects: list[SceneObject] = []
+    raw: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]] = []
+    for box in boxes:
+        obj_id = len(objects)
+        ids = []
+        for label, normal, centre, axes, half in _box_faces(box):
+            ids.append(len(raw))
+            raw.append((obj_id, f"{box.name}.{label}", normal, centre, axes, half, False))
+        if box.kind == "room":
+            horiz = sorted(box.size_m[:2].tolist(), reverse=True)
+            size = (horiz[0], horiz[1], float(box.size_m[2]))
+            cls: Literal["box", "room", "structure"] = "room"
+        else:
+            size = tuple(sorted(box.size_m.tolist(), reverse=True))
+            cls = "box"
+        objects.append(SceneObject(obj_id, box.name, cls, tuple(ids), size))
+    for struct in structures:
+        obj_id = len(objects)
+        ids = []
+        pts = []
+        for panel in struct.panels:
+            ids.append(len(raw))
+            axes = panel.rotation[:, :2].T.copy()
+            raw.append(
+                (
+                    obj_id,
+                    f"{struct.name}.{panel.name}",
+                    panel.rotation[:, 2].copy(),
+                    panel.centre,
+                    axes,
+                    panel.size_m / 2.0,
+                    True,
+                )
+            )
+            signs = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], dtype=np.float64)
+            pts.append(panel.centre + (signs * panel.size_m / 2.0) @ axes)
+        extent = np.ptp(np.concatenate(pts), axis=0)
+        size = tuple(sorted(extent.tolist(), reverse=True))
+        objects.append(SceneObject(obj_id, struct.name, "structure", tuple(ids), size))
+    for pid, (obj_id, pname, normal, centre, axes, half, two_sided) in enumerate(raw):
+        albedo, cell, salt = _appearance(texture_seed, pid)
+        normal = normal / np.linalg.norm(normal)
+        planes.append(
+            ScenePlane(
+                id=pid,
+                name=pname,
+                object_id=obj_id,
+                normal=normal,
+                d=float(-normal @ centre),
+                centre=np.asarray(centre, dtype=np.float64),
+                axes=np.asarray(axes, dtype=np.float64),
+                half_size_m=np.asarray(half),
+                two_sided=two_sided,
+                albedo_rgb=albedo,
+                texture_cell_m=cell,
+                texture_salt=salt,
+            )
+        )
+    names = [p.name for p in planes]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"scene {name!r}: plane names are not unique: {names}")
+    edges = _true_edges(planes)
+    corners = _true_corners(planes, edges)
+    return Scene(
+        name=name,
+        boxes=tuple(boxes),
+        structures=tuple(structures),
+        planes=tuple(planes),
+        objects=tuple(objects),
+        edges=tuple(edges),
+        corners=tuple(corners),
+    )
+
+
+def _clip_line_to_rect(
+    point: np.ndarray, direction: np.ndarray, plane: ScenePlane, lo: float, hi: float
+) -> tuple[float, float]:
+    """Narrow the line parameter interval [lo, hi] to the part inside the plane's rectangle."""
+    for axis, half in zip(plane.axes, plane.half_size_m, strict=True):
+        a = float((point - plane.centre) @ axis)
+        b = float(direction @ axis)
+        if abs(b) < 1e-9:
+            # The line runs along this side: it touches when it lies within the
+            # rectangle up to rounding.
+            if abs(a) > half + _TOUCH_TOL_M:
+                return 1.0, 0.0
+            continue
+        s1, s2 = sorted(((-half - a) / b, (half - a) / b))
+        lo, hi = max(lo, s1), min(hi, s2)
+    return lo, hi
+
+
+def _true_edges(planes: list[ScenePlane]) -> list[SceneEdge]:
+    """Pairs of non-parallel rectangles that share a segment of their common line."""
+    edges = []
+    for p, q in itertools.combinations(planes, 2):
+        direction = np.cross(p.normal, q.normal)
+        s = float(np.linalg.norm(direction))
+        if s < 1e-6:
+            continue
+        direction /= s
+        A = np.stack([p.normal, q.normal, direction])
+        point = np.linalg.solve(A, np.array([-p.d, -q.d, 0.0]))
+        lo, hi = _clip_line_to_rect(point, direction, p, -np.inf, np.inf)
+        lo, hi = _clip_line_to_rect(point, direction, q, lo, hi)
+        if hi - lo > 1e-3:
+            segment = point + np.array([lo, hi])[:, None] * direction
+            edges.append(SceneEdge((p.id, q.id), segment))
+    return edges
+
+
+def _true_corners(planes: list[ScenePlane], edges: list[SceneEdge]) -> list[SceneCorner]:
+    """Triples of planes pairwise joined by edges whose three segments meet in one point."""
+    by_pair = {e.plane_ids: e for e in edges}
+    corners = []
+    ids = sorted({i for e in edges for i in e.plane_ids})
+    for i, j, k in itertools.combinations(ids, 3):
+        trio = [by_pair.get(pair) for pair in ((i, j), (i, k), (j, k))]
+        if any(e is None for e in trio):
+            continue
+        normals = np.stack([planes[m].normal for m in (i, j, k)])
+        if abs(np.linalg.det(normals)) < 1e-6:
+            continue
+        point = np.linalg.solve(normals, -np.array([planes[m].d for m in (i, j, k)]))
+        if all(point_segment_distance(point, e.segment) < 1e-6 for e in trio):  # type: ignore[union-attr]
+            corners.append(SceneCorner((i, j, k), point))
+    return corners
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = WORLD_UP) -> np.ndarray:
+    """Camera poses looking from `eye` to `target`: (N, 3), (N, 3) -> (N, 4, 4) T_world_cam.
+
+    Camera frame x right, y down, z forward; the image is upright for world `up`.
+    Raises GeometryError when a view direction is parallel to `up`.
+    """
+    eye = np.atleast_2d(np.asarray(eye, dtype=np.float64))
+    target = np.atleast_2d(np.asarray(target, dtype=np.float64))
+    z = target - eye
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    x = np.cross(z, up)
+    norm = np.linalg.norm(x, axis=1, keepdims=True)
+    if np.any(norm < 1e-9):
+        raise GeometryError("look_at: view direction parallel to the up vector")
+    x /= norm
+    y = np.cross(z, x)
+    T = np.tile(np.eye(4), (len(eye), 1, 1))
+    T[:, :3, 0], T[:, :3, 1], T[:, :3, 2], T[:, :3, 3] = x, y, z, eye
+    return T
+
+
+def periodic_shake(
+    phase: np.ndarray, rng: np.random.Generator, amplitude: float, harmonics: tuple[int, int]
+) -> np.ndarray:
+    """Smooth seeded perturbation, periodic in `phase` (N,) with period 1 -> (N, 3).
+
+    A sum of sines at integer harmonics in [harmonics[0], harmonics[1]] with
+    random phases, scaled so each component's RMS is about `amplitude`.
+    """
+    k = np.arange(harmonics[0], harmonics[1] + 1)
+    coeff = rng.normal(size=(3, len(k))) / np.sqrt(len(k)) * amplitude * np.sqrt(2)
+    phases = rng.uniform(0, 2 * np.pi, size=(3, len(k)))
+    arg = 2 * np.pi * phase[:, None, None] * k[None, None, :] + phases[None]
+    return np.sum(coeff[None] * np.sin(arg), axis=2)
+
+
+def apply_shake(T_world_cam: np.ndarray, dt_m: np.ndarray, drot_rad: np.ndarray) -> np.ndarray:
+    """Perturb (N, 4, 4) poses by world translations (N, 3) [m] and camera-frame
+    rotation vectors (N, 3) [rad]."""
+    out = T_world_cam.copy()
+    out[:, :3, :3] = T_world_cam[:, :3, :3] @ Rotation.from_rotvec(drot_rad).as_matrix()
+    out[:, :3, 3] += dt_m
+    return out
+
+
+def _check_frames(frames: int | None, default: int) -> int:
+    n = default if frames is None else frames
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ConfigError(f"frames must be a whole number >= 1, got {frames!r}")
+    return int(n)
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+def box_room_circle(
+    frames: int | None = None, rng: np.random.Generator | None = None
+) -> tuple[Scene, Trajectory]:
+    """The paper's second experiment (Section 5): a box in a small square room.
+
+    Room: 1.88 x 1.88 m floor, walls 1.1 m high (the paper gives only the floor
+    size), centred on the world origin, floor at z = 0, ceiling present.
+    Box: 0.38 x 0.29 x 0.19 m, on the floor at the centre, long side along the
+    world x axis, no bottom face. Camera: on a Nao-sized robot, 0.50 m above
+    the floor, walking a circle of radius 0.7 m around the box in `frames`
+    equal steps (default 24, at azimuths 7.5 deg + k * 360 / frames, so no view
+    is square to a box face), looking at the point 0.05 m above the box's
+    centre on the floor (about 33 deg down). Every frame sees the box top, at
+    least one side, the floor, two walls and room corners; a second side only
+    where the camera is outside both face slabs of the box, which on this
+    circle excludes about 12 deg either side of the box's x axis and 16 deg
+    either side of its y axis, so 14 of the 24 default views show three box
+    faces with measured depth. One frame per step, 1 s apart from t = 0.
+    `rng` is unused (the path is exact).
+    """
+    n = _check_frames(frames, 24)
+    room = Box("room", (0.0, 0.0, 0.55), (1.88, 1.88, 1.10), kind="room")
+    box = Box("box", (0.0, 0.0, 0.095), (0.38, 0.29, 0.19), omit_faces=("-z",))
+    scene = make_scene("box_room_circle", (room, box), texture_seed=1)
+    azimuth = np.deg2rad(7.5) + 2 * np.pi * np.arange(n) / n
+    eye = np.stack([0.7 * np.cos(azimuth), 0.7 * np.sin(azimuth), np.full(n, 0.50)], axis=1)
+    target = np.tile([0.0, 0.0, 0.05], (n, 1))
+    return scene, Trajectory(np.arange(n, dtype=np.float64), look_at(eye, target))
+
+
+def room_boxes_loop(
+    frames: int | None = None, rng: np.random.Generator | None = None
+) -> tuple[Scene, Trajectory]:
+    """A 4 x 3.5 x 2.5 m room with four boxes and a hand-held loop at 30 Hz.
+
+    Room centred on the world origin, floor at z = 0. Boxes on the floor (no
+    bottom faces), of different sizes and yaws, at least 0.3 m from the walls.
+    Camera: an ellipse of semi-axes 1.1 x 0.8 m at about 1.45 m height (with a
+    slow 0.1 m vertical wave), looking across the room at a point on an inner
+    ellipse 0.6 m above the floor that leads the camera by 150 deg, so views
+    take in the boxes, the floor and two walls. Seeded hand-shake (`rng`):
+    smooth periodic noise of about 8 mm and 0.5 deg RMS at harmonics 6-25 of
+    the loop, so the path is smooth and returns exactly to its start:
+    frame i has loop phase i / (frames - 1); the last pose equals the first
+    (a loop closure). Default 300 frames, 30 Hz from t = 0.
+    """
+    n = _check_frames(frames, 300)
+    rng = rng if rng is not None else np.random.default_rng(0)
+    room = Box("room", (0.0, 0.0, 1.25), (4.0, 3.5, 2.5), kind="room")
+    boxes = (
+        room,
+        Box("crate", (0.9, 0.7, 0.225), (0.6, 0.45, 0.45), rot_z(0.35), omit_faces=("-z",)),
+        Box("cube", (-1.0, 0.55, 0.25), (0.5, 0.5, 0.5), rot_z(-0.5), omit_faces=("-z",)),
+        Box("cabinet", (0.2, -1.2, 0.4), (0.9, 0.45, 0.8), rot_z(0.1), omit_faces=("-z",)),
+        Box("shoebox", (-0.6, -0.5, 0.06), (0.33, 0.2, 0.12), rot_z(0.9), omit_faces=("-z",)),
+    )
+    scene = make_scene("room_boxes_loop", boxes, texture_seed=2)
+    phase = np.arange(n) / max(n - 1, 1)
+    a = 2 * np.pi * phase
+    eye = np.stack([1.1 * np.cos(a), 0.8 * np.sin(a), 1.45 + 0.1 * np.sin(2 * a)], axis=1)
+    b = a + np.deg2rad(150.0)
+    target = np.stack([0.7 * np.cos(b), 0.5 * np.sin(b), np.full(n, 0.6)], axis=1)
+    T = look_at(eye, target)
+    T = apply_shake(
+        T, periodic_shake(phase, rng, 0.008, (6, 25)), periodic_shake(phase, rng, 0.009, (6, 25))
+    )
+    return scene, Trajectory(np.arange(n) / 30.0, T)
+
+
+def zigzag_panels(
+    frames: int | None = None, rng: np.random.Generator | None = None
+) -> tuple[Scene, Trajectory]:
+    """A zig-zag of four panels standing on the floor (like TUM fr3/structure_texture_far).
+
+    Room 10 x 8 x 3 m centred on the world origin (floor z = 0), so its walls are
+    mostly beyond the sensor's range. Structure 'zigzag': four 1.0 x 0.8 m
+    vertical panels whose bottom edges follow a zig-zag on the floor between
+    y = 0 and y = 0.64 m (panels at +-40 deg to the x axis), spanning x in
+    [-1.53, 1.53] m; neighbours share a vertical edge. Camera: about 2.2 m in
+    front of it (y = -2.2 m) at 1.3 m height, looking at the structure about
+    20 deg down, moving sideways from x = -0.9 to +0.9 m at 30 Hz with seeded
+    hand-shake of about 5 mm and 0.4 deg RMS. Default 150 frames (5 s).
+    """
+    n = _check_frames(frames, 150)
+    rng = rng if rng is not None else np.random.default_rng(0)
+    room = Box("room", (0.0, 0.0, 1.5), (10.0, 8.0, 3.0), kind="room")
+    angle = np.deg2rad(40.0)
+    width, height = 1.0, 0.8
+    dx, dy = width * np.cos(angle), width * np.sin(angle)
+    xs = (np.arange(5) - 2) * dx
+    ys = np.array([0.0, dy, 0.0, dy, 0.0])
+    panels = []
+    for k in range(4):
+        p0 = np.array([xs[k], ys[k], 0.0])
+        p1 = np.array([xs[k + 1], ys[k + 1], 0.0])
+        u = (p1 - p0) / np.linalg.norm(p1 - p0)
+        v = WORLD_UP
+        normal = np.cross(u, v)
+        if normal[1] > 0:  # face the camera side (-y) by convention
+            normal = -normal
+        R = np.stack([u, v, normal], axis=1)
+        centre = (p0 + p1) / 2 + v * height / 2
+        panels.append(Panel(f"panel_{k}", centre, (width, height), R))
+    scene = make_scene("zigzag_panels", (room,), (Structure("zigzag", tuple(panels)),), 3)
+    phase = np.arange(n) / max(n - 1, 1)
+    x = -0.9 + 1.8 * phase
+    eye = np.stack([x, np.full(n, -2.2), np.full(n, 1.3)], axis=1)
+    target = np.stack([0.6 * x, np.full(n, 0.3), np.full(n, 0.5)], axis=1)
+    T = look_at(eye, target)
+    T = apply_shake(
+        T, periodic_shake(phase, rng, 0.005, (3, 12)), periodic_shake(phase, rng, 0.007, (3, 12))
+    )
+    return scene, Trajectory(np.arange(n) / 30.0, T)
+
+
+SceneFactory = Callable[[int | None, np.random.Generator | None], tuple[Scene, Trajectory]]
+
+SCENES: dict[str, SceneFactory] = {
+    "box_room_circle": box_room_circle,
+    "room_boxes_loop": room_boxes_loop,
+    "zigzag_panels": zigzag_panels,
+}
+"""Scene name -> factory(frames, rng) returning (scene, trajectory)."""
+
+
+def get_scene(
+    name: str, frames: int | None = None, rng: np.random.Generator | None = None
+) -> tuple[Scene, Trajectory]:
+    """Build a named scene and its trajectory; ConfigError listing the names when unknown."""
+    if name not in SCENES:
+        raise ConfigError(f"unknown scene {name!r}; scenes: {', '.join(SCENES)}")
+    return SCENES[name](frames, rng)
