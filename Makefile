@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= out/demo
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test test-fast lint bench clean
 
 setup: $(STAMP)
 
@@ -28,9 +28,14 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
+# The unit tests without the slow ones (< 20 s); `make test` runs everything.
+test-fast: $(STAMP)
+	$(BIN)/python -m pytest -q -m "unit and not slow"
+
 lint: $(STAMP)
 	$(BIN)/ruff check planeslam factors eval tests
 	$(BIN)/ruff format --check planeslam factors eval tests
+	$(BIN)/mypy planeslam factors eval
 
 bench: $(STAMP)
 	$(BIN)/planeslam bench frontend

@@ -159,7 +159,7 @@ def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
 
 def _backend_figures(slam: SLAM) -> dict[str, float]:
     result = slam.backend_result
-    if result is None:
+    if result is None or not result.num_factors:  # no factor graph (the paper's merge)
         return {}
     update_ms = np.asarray(result.update_ms, dtype=np.float64)
     return {

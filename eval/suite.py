@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import concurrent.futures
 import csv
-import dataclasses
 import json
 import logging
 import multiprocessing
@@ -118,14 +117,12 @@ def _open3d_odometry(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
 
 def _slam_method(backend: str) -> Method:
     def run(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
-        from planeslam.slam import SLAM, frame_indices, run_frames
+        from planeslam.slam import frame_indices, run_frames, slam_for_dataset
 
         config = resolve_config(dataset.root, spec.config)
         indices = frame_indices(len(dataset), spec.max_frames, spec.every)
-        slam = SLAM(
-            config, backend, T_world_first=dataset.groundtruth_pose(dataset.timestamps[indices[0]])
-        )
-        summary = run_frames(slam, dataset, indices)
+        with slam_for_dataset(config, dataset, indices[0], backend) as slam:
+            summary = run_frames(slam, dataset, indices)
         metrics = slam_run_metrics(slam, summary)
         objects = slam.map.to_dict()["objects"]
         return MethodResult(trajectory=slam.trajectory(), metrics=metrics, objects=objects)
@@ -183,63 +180,6 @@ def load_suite(path: str | Path) -> tuple[SuiteConfig, Path]:
         if spec.every < 1:
             raise ConfigError(f"{path}: sequences[{k}].every must be >= 1, got {spec.every}")
     return config, path.parent
-
-
-DEFAULT_SUITE = "suite.yaml"
-"""The bundled default suite (in `planeslam.configs`); data paths are relative to the
-current directory, i.e. the repository root."""
-
-
-def run_suite_command(
-    suite: str | Path | None,
-    out_dir: str | Path,
-    jobs: int | None = None,
-    progress: bool = False,
-) -> str:
-    """`planeslam bench suite [SUITE.yaml] [--jobs N]`: render the synthetic scenes, run the
-    suite with a progress bar, write suite.md and suite.csv into out_dir; returns the table.
-
-    Without SUITE the bundled default suite runs from the current directory; its optional
-    sequences (../shared/data) are skipped with a note when absent.
-    """
-    if suite is None:
-        from importlib import resources
-
-        path = Path(str(resources.files("planeslam.configs") / DEFAULT_SUITE))
-        config, _ = load_suite(path)
-        base_dir = Path.cwd()
-    else:
-        config, base_dir = load_suite(suite)
-    present = []
-    for spec in config.sequences:
-        if spec.optional and spec.scene is None and not (base_dir / spec.path).is_dir():
-            log.warning("skipping %s: %s not found", spec.name, base_dir / spec.path)
-        else:
-            present.append(spec)
-    config = dataclasses.replace(config, sequences=tuple(present), jobs=jobs or config.jobs)
-    out = Path(out_dir)
-    render_scenes(config, out)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(config.sequences) * len(config.methods), desc="suite", unit="run")
-
-    def on_row(row: SuiteRow) -> None:
-        if bar is not None:
-            status = "failed" if row.error else f"ATE {row.ate_rmse_m or 0:.3f} m"
-            bar.set_postfix_str(f"{row.sequence} {row.method}: {status}", refresh=False)
-            bar.update(1)
-
-    try:
-        result = run_suite(config, base_dir, out, on_row)
-    finally:
-        if bar is not None:
-            bar.close()
-    table = to_markdown(result)
-    (out / "suite.md").write_text(table, encoding="utf-8")
-    write_csv(result, out / "suite.csv")
-    return table + f"\nwritten: {out / 'suite.md'}, {out / 'suite.csv'}"
 
 
 def sequence_root(spec: SequenceSpec, base_dir: str | Path, out_dir: str | Path | None) -> Path:

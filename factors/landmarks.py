@@ -1,15 +1,17 @@
 """Plane and corner landmarks for a caller that owns its own GTSAM graph.
 
-`PlaneLandmarks` turns the front end's observations of one frame into factors
+`PlaneLandmarks` turns the front end's measurements of one frame (`FrameMeasurements`,
+from `FrontEnd.process(...).measurements()`) into factors
 and new landmark values, added to the caller's `NonlinearFactorGraph` and
 `Values` with the caller's pose key and the symbol characters the caller chose
 in `LandmarkKeys` (so our variables never collide with theirs):
 
     keys = LandmarkKeys(pose_char="x", plane_char="P", corner_char="C")
     landmarks = PlaneLandmarks(keys, LandmarkConfig(robust_kernel="huber"))
-    plane_ids, corner_ids = landmarks.associate(observation, T_world_cam_pred)
+    measurements = front_end.process(depth_m, stamp).measurements()
+    plane_ids, corner_ids = landmarks.associate(measurements, T_world_cam_pred)
     added = landmarks.add_observations(
-        graph, new_values, keys.pose(i), T_world_cam_pred, observation, plane_ids, corner_ids
+        graph, new_values, keys.pose(i), T_world_cam_pred, measurements, plane_ids, corner_ids
     )
     ...  # the caller adds its own odometry / IMU factors, optimises
     landmarks.update_estimates(result)
@@ -41,13 +43,17 @@ import logging
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
 
 from planeslam.core.errors import AssociationError, ConfigError, GeometryError
 from planeslam.core.geometry import angle_between, as_pose, transform_plane, transform_points
+from planeslam.core.types import (
+    FrameMeasurements,
+    PlaneEstimate,
+    PlaneMeasurement,
+)
 from planeslam.tracking.association import associate_with_corners
 
 from .config import LandmarkConfig, LandmarkKeys
@@ -55,9 +61,6 @@ from .corner_observation import corner_factor
 from .plane_observation import plane_factor, robust_plane_factor
 from .plane_structure import structural_factor
 from .point_on_plane import point_on_plane_factor
-
-if TYPE_CHECKING:
-    from planeslam.frontend.pipeline import FrameObservation
 
 logger = logging.getLogger(__name__)
 
@@ -100,7 +103,7 @@ class PlaneLandmarks:
             raise ConfigError(f"keys={keys!r}: expected a planeslam.factors.LandmarkKeys")
         self.keys = keys
         self.config = config or LandmarkConfig()
-        self._planes: dict[int, tuple[np.ndarray, float]] = {}
+        self._planes: dict[int, PlaneEstimate] = {}
         self._corners: dict[int, _Corner] = {}
         self._structure_pairs: set[tuple[int, int]] = set()
         self._next_plane = 0
@@ -118,13 +121,11 @@ class PlaneLandmarks:
         """Ids of the corner landmarks that have a value, increasing."""
         return sorted(self._corners)
 
-    def plane_estimates(
-        self, ids: Iterable[int] | None = None
-    ) -> dict[int, tuple[np.ndarray, float]]:
-        """Landmark id -> (n_world (3,), d_world [m]) as last known, of every landmark or
-        of those `ids` that have a value."""
+    def plane_estimates(self, ids: Iterable[int] | None = None) -> dict[int, PlaneEstimate]:
+        """Landmark id -> estimate (world frame) as last known, of every landmark or of
+        those `ids` that have a value."""
         ids = sorted(self._planes) if ids is None else [j for j in ids if j in self._planes]
-        return {j: (self._planes[j][0].copy(), self._planes[j][1]) for j in ids}
+        return {j: self._planes[j] for j in ids}
 
     def corner_estimates(self, ids: Iterable[int] | None = None) -> dict[int, np.ndarray]:
         """Landmark id -> p_world (3,) [m] as last known, of every landmark or of those
@@ -142,7 +143,9 @@ class PlaneLandmarks:
             key = self.keys.plane(j)
             if values.exists(key):
                 plane = values.atOrientedPlane3(key)
-                self._planes[j] = (np.asarray(plane.normal().point3()), float(plane.distance()))
+                self._planes[j] = PlaneEstimate(
+                    np.asarray(plane.normal().point3()), float(plane.distance())
+                )
         for k, corner in self._corners.items():
             key = self.keys.corner(k)
             if values.exists(key):
@@ -164,7 +167,7 @@ class PlaneLandmarks:
 
     def associate(
         self,
-        observation: FrameObservation,
+        measurements: FrameMeasurements,
         T_world_cam_pred: np.ndarray,
         max_angle_deg: float | None = None,
         max_offset_m: float | None = None,
@@ -184,8 +187,8 @@ class PlaneLandmarks:
         max_offset_m = cfg.associate_max_offset_m if max_offset_m is None else max_offset_m
         if max_corner_distance_m is None:
             max_corner_distance_m = cfg.associate_max_corner_distance_m
-        planes = list(observation.segmentation.planes)
-        corners = list(observation.structure.corners) if cfg.use_corners else []
+        planes = list(measurements.planes)
+        corners = list(measurements.corners) if cfg.use_corners else []
         T = as_pose(T_world_cam_pred, "T_world_cam_pred")
         map_ids = self.plane_ids
         row_of = {j: r for r, j in enumerate(map_ids)}
@@ -195,10 +198,10 @@ class PlaneLandmarks:
         obs_row = {p.id: r for r, p in enumerate(planes)}
         obs_corner_index = [k for k, c in enumerate(corners) if all(i in obs_row for i in c.planes)]
         obs_corners = [corners[k] for k in obs_corner_index]
-        n_map = np.array([self._planes[j][0] for j in map_ids]).reshape(-1, 3)
-        d_map = np.array([self._planes[j][1] for j in map_ids], dtype=np.float64)
-        n_obs = np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3)
-        d_obs = np.array([p.d for p in planes], dtype=np.float64)
+        n_map = np.array([self._planes[j].n_world for j in map_ids]).reshape(-1, 3)
+        d_map = np.array([self._planes[j].d_world for j in map_ids], dtype=np.float64)
+        n_obs = np.array([p.n_cam for p in planes], dtype=np.float64).reshape(-1, 3)
+        d_obs = np.array([p.d_cam for p in planes], dtype=np.float64)
         association = associate_with_corners(
             n_map,
             d_map,
@@ -211,7 +214,7 @@ class PlaneLandmarks:
             np.array([[obs_row[i] for i in c.planes] for c in obs_corners])
             .reshape(-1, 3)
             .astype(np.int64),
-            np.array([c.point for c in obs_corners], dtype=np.float64).reshape(-1, 3),
+            np.array([c.p_cam for c in obs_corners], dtype=np.float64).reshape(-1, 3),
             T,
             math.radians(max_angle_deg),
             max_offset_m,
@@ -242,7 +245,7 @@ class PlaneLandmarks:
         values: gtsam.Values,
         pose_key: int,
         T_world_cam: np.ndarray,
-        observation: FrameObservation,
+        measurements: FrameMeasurements,
         plane_ids: Mapping[int, int],
         corner_ids: Mapping[int, int] | None = None,
     ) -> AddedFactors:
@@ -254,7 +257,7 @@ class PlaneLandmarks:
         pose, used only to initialise new landmarks in the world frame.
         plane_ids: observed plane id (`Plane.id`) -> landmark id (observed planes
         missing from it are ignored); corner_ids: index in
-        `observation.structure.corners` -> landmark id (None: no corners).
+        `measurements.corners` -> landmark id (None: no corners).
         A landmark id not yet in the table is created with its initial value (unless
         `values` already holds its key, i.e. the caller created it). Raises
         AssociationError when two observed planes (or corners) map to one landmark.
@@ -265,11 +268,11 @@ class PlaneLandmarks:
         corner_ids = {int(i): int(k) for i, k in (corner_ids or {}).items()}
         _check_one_to_one(plane_ids, "plane_ids")
         _check_one_to_one(corner_ids, "corner_ids")
-        planes = {p.id: p for p in observation.segmentation.planes}
+        planes = {p.id: p for p in measurements.planes}
         unknown = sorted(set(plane_ids) - set(planes))
         if unknown:
             raise AssociationError(
-                f"plane_ids names observed planes {unknown} that the observation does not have "
+                f"plane_ids names observed planes {unknown} that the measurements do not have "
                 f"(its plane ids: {sorted(planes)})"
             )
         factors: list[gtsam.NonlinearFactor] = []
@@ -285,16 +288,16 @@ class PlaneLandmarks:
 
         for obs_id, lm in sorted(plane_ids.items()):
             plane = planes[obs_id]
-            n_cam = np.asarray(plane.normal, dtype=np.float64)
-            z_cam = np.r_[n_cam, float(plane.d)]
+            n_cam = np.asarray(plane.n_cam, dtype=np.float64)
+            z_cam = np.r_[n_cam, float(plane.d_cam)]
             cov = self._plane_covariance(plane)
             key = self.keys.plane(lm)
             if lm not in self._planes:
-                n_world, d_world = transform_plane(T, n_cam, float(plane.d))
+                n_world, d_world = transform_plane(T, n_cam, float(plane.d_cam))
                 if not values.exists(key):
                     values.insert(key, gtsam.OrientedPlane3(np.r_[n_world, d_world]))
                     new_keys.append(key)
-                self._planes[lm] = (n_world, d_world)
+                self._planes[lm] = PlaneEstimate(n_world, d_world)
                 self._next_plane = max(self._next_plane, lm + 1)
                 new_planes.append(lm)
             if cfg.robust_kernel is None:
@@ -306,15 +309,15 @@ class PlaneLandmarks:
                 )
 
         if cfg.use_corners and corner_ids:
-            corners = list(observation.structure.corners)
+            corners = list(measurements.corners)
             corner_cov = cfg.corner_sigma_m**2 * np.eye(3)
             for index, lm in sorted(corner_ids.items()):
                 if not 0 <= index < len(corners):
                     raise AssociationError(
-                        f"corner_ids names corner {index}: the observation has {len(corners)}"
+                        f"corner_ids names corner {index}: the measurements have {len(corners)}"
                     )
                 corner = corners[index]
-                p_cam = np.asarray(corner.point, dtype=np.float64)
+                p_cam = np.asarray(corner.p_cam, dtype=np.float64)
                 key = self.keys.corner(lm)
                 if lm not in self._corners:
                     tied = tuple(plane_ids.get(i) for i in corner.planes)
@@ -339,7 +342,7 @@ class PlaneLandmarks:
 
         if cfg.use_structure:
             tol = math.radians(cfg.structure_tolerance_deg)
-            for edge in observation.structure.edges:
+            for edge in measurements.edges:
                 a, b = edge.planes
                 if a not in plane_ids or b not in plane_ids:
                     continue
@@ -348,7 +351,7 @@ class PlaneLandmarks:
                     continue
                 # The measured angle between the normals (both toward the camera, as are
                 # the landmarks'), not the region's dihedral angle `edge.angle_rad`.
-                angle = angle_between(planes[a].normal, planes[b].normal)
+                angle = angle_between(planes[a].n_cam, planes[b].n_cam)
                 factor = structural_factor(
                     self.keys.plane(pair[0]),
                     self.keys.plane(pair[1]),
@@ -377,7 +380,7 @@ class PlaneLandmarks:
             new_corners=tuple(new_corners),
         )
 
-    def _plane_covariance(self, plane) -> np.ndarray:
+    def _plane_covariance(self, plane: PlaneMeasurement) -> np.ndarray:
         """(3, 3) fit covariance (tangent normal [rad], d [m]) plus the floor, symmetrised."""
         cov = np.asarray(plane.covariance, dtype=np.float64)
         if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):

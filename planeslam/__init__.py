@@ -20,8 +20,9 @@ _EXPORTS = {
     "EvaluationError": "planeslam.core.errors",
     "Frame": "planeslam.io.dataset",
     "GeometryError": "planeslam.core.errors",
-    "Map": "planeslam.mapping.map",
+    "Map": "planeslam.mapping.world_map",
     "MapConfig": "planeslam.mapping.config",
+    "MapError": "planeslam.core.errors",
     "PlaneSlamConfig": "planeslam.config",
     "PlaneSlamError": "planeslam.core.errors",
     "SLAM": "planeslam.slam",
@@ -45,6 +46,7 @@ __all__ = [
     "GeometryError",
     "Map",
     "MapConfig",
+    "MapError",
     "PlaneSlamConfig",
     "PlaneSlamError",
     "SLAM",
@@ -65,13 +67,14 @@ if TYPE_CHECKING:
         DatasetFormatError,
         EvaluationError,
         GeometryError,
+        MapError,
         PlaneSlamError,
     )
     from planeslam.io.config import DatasetConfig
     from planeslam.io.dataset import Frame, TumDataset
     from planeslam.io.trajectory import Trajectory, read_tum, write_tum
     from planeslam.mapping.config import MapConfig
-    from planeslam.mapping.map import Map
+    from planeslam.mapping.world_map import Map
     from planeslam.slam import SLAM
 
 

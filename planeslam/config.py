@@ -12,9 +12,10 @@ import dataclasses
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import Literal
 
 from planeslam.backend.config import BackendConfig
-from planeslam.core.camera import CameraConfig
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.config import from_mapping, read_yaml, save_yaml, to_mapping
 from planeslam.core.errors import ConfigError
 from planeslam.frontend.config import IntersectionConfig, ObjectConfig, SegmentationConfig
@@ -25,6 +26,7 @@ from planeslam.tracking.config import TrackingConfig
 __all__ = [
     "PRESETS",
     "PlaneSlamConfig",
+    "RunConfig",
     "from_mapping",
     "guess_preset",
     "load_camera_yaml",
@@ -40,6 +42,29 @@ PRESETS = ("defaults", "tum_fr1", "tum_fr2", "tum_fr3", "sevenscenes", "syntheti
 
 
 @dataclass(frozen=True)
+class RunConfig:
+    """How a run is made, beyond the stages: saved with every run so that its
+    `config.yaml` reproduces it (`planeslam run DATASET --config OUT/config.yaml`)."""
+
+    backend: Literal["isam2", "merge"] = "isam2"
+    """'isam2': the GTSAM factor graph; 'merge': the paper's frame-by-frame merging."""
+    seed: int = 0
+    """Seed of the front end's random generator (the MSAC segmenter's samples)."""
+    every: int = 1
+    """A dataset run takes every n-th frame."""
+    max_frames: int | None = None
+    """A dataset run takes at most this many frames (None: all)."""
+
+    def __post_init__(self) -> None:
+        if self.backend not in ("isam2", "merge"):
+            raise ConfigError(f"run.backend must be 'isam2' or 'merge', got {self.backend!r}")
+        if self.every < 1:
+            raise ConfigError(f"run.every must be >= 1 (take every n-th frame), got {self.every}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise ConfigError(f"run.max_frames must be >= 1 or null, got {self.max_frames}")
+
+
+@dataclass(frozen=True)
 class PlaneSlamConfig:
     """Everything a run needs, one section per stage."""
 
@@ -47,6 +72,8 @@ class PlaneSlamConfig:
     """Intrinsics and depth encoding."""
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     """How frames are read and associated."""
+    sensor: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
+    """Depth noise sigma(z) = a + b z^2 of the sensor (segmentation and intersections)."""
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     """Plane segmentation (paper step 2)."""
     intersections: IntersectionConfig = field(default_factory=IntersectionConfig)
@@ -59,6 +86,8 @@ class PlaneSlamConfig:
     """The world plane-object map: merging, objects, sparse cloud."""
     backend: BackendConfig = field(default_factory=BackendConfig)
     """The iSAM2 backend: noise, keyframes, landmark factors."""
+    run: RunConfig = field(default_factory=RunConfig)
+    """Backend choice, seed and frame selection of a run."""
 
 
 def preset_path(name: str) -> Path:

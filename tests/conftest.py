@@ -1,4 +1,5 @@
-"""Shared fixtures: the real data folder (skipped with a reason when absent)."""
+"""Shared fixtures: the real data folder (skipped with a reason when absent); and the
+`unit` / `integration` split of the suite (`make test-fast` runs `-m "unit and not slow"`)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,64 @@ import pytest
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEQUENCES = ("7scenes_redkitchen_1000f", "tum_fr1_desk_9f", "tum_fr1_xyz_10f")
+
+# Modules whose tests run across stages: the whole pipeline or SLAM runs, the CLI,
+# subprocesses (the backend worker, the suite, packaging, benchmarks). Chosen by measuring
+# `pytest --durations=0`: together they took ~75 s of the ~115 s suite. Tests on the real
+# data (`data` mark) are integration tests too, wherever they are.
+INTEGRATION_MODULES = frozenset(
+    {
+        "test_backend_worker.py",  # the backend in a worker process
+        "test_baselines.py",  # open3d odometry on real data, the baseline suite in workers
+        "test_bench.py",  # `planeslam bench`: front end over rendered sequences
+        "test_cli.py",  # the CLI, in subprocesses, demo included
+        "test_packaging.py",  # builds and installs a wheel
+        "test_slam.py",  # full SLAM runs, `planeslam run`
+        "test_suite_command.py",  # `planeslam suite`
+    }
+)
+
+# Single tests of otherwise unit modules that cross stages or call subprocesses
+# ("module::function", every parametrisation included). Measured at 0.4-5.5 s per function
+# (all parametrisations); what is left as `unit` runs in ~10 s of test time plus ~4 s of
+# collection, the imports of open3d, gtsam and evo.
+INTEGRATION_TESTS = frozenset(
+    {
+        # the evo CLI in subprocesses; whole evaluation folder with plots and report
+        "test_eval.py::test_ate_equals_evo_ape_cli",
+        "test_eval.py::test_rpe_equals_evo_rpe_cli",
+        "test_eval.py::test_write_evaluation_and_report",
+        "test_eval.py::test_evaluate_to_folder_adds_object_sizes",
+        # renderer -> segmenter / front end, on whole rendered frames or sequences
+        "test_frontend.py::test_truth_frames_see_three_box_faces",
+        "test_frontend.py::test_box_and_room_with_the_real_segmenter",
+        "test_segmentation.py::test_organized_matches_truth",
+        "test_segmentation.py::test_msac_matches_truth",
+        # a whole loop through iSAM2; rendered frames -> front end -> factor graph
+        "test_backend.py::test_isam2_beats_odometry_below_1cm",
+        "test_backend.py::test_real_front_end_observations_on_rendered_frames",
+        # slow: the demo's figure; the paper's 24-frame run through front end and map
+        "test_frontend.py::test_demo_figure_box_found_and_sized",
+        "test_map.py::test_true_pose_merge_of_box_room_circle_sizes_box_and_room",
+    }
+)
+
+
+def _is_integration(item: pytest.Item) -> bool:
+    if item.get_closest_marker("data") is not None:  # real data: the whole reader, undistortion
+        return True
+    module = item.path.name
+    name = getattr(item, "originalname", item.name)
+    return module in INTEGRATION_MODULES or f"{module}::{name}" in INTEGRATION_TESTS
+
+
+@pytest.hookimpl(tryfirst=True)  # before `-m` deselects
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Every test is `unit` or `integration`; an explicit mark on the test wins."""
+    for item in items:
+        if item.get_closest_marker("unit") or item.get_closest_marker("integration"):
+            continue
+        item.add_marker(pytest.mark.integration if _is_integration(item) else pytest.mark.unit)
 
 
 def shared_sequence(name: str) -> Path:

@@ -17,9 +17,7 @@ from helpers import assert_pose_close
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_landmarks import (  # noqa: E402
-    FakeObservation,
-    FakeSegmentation,
-    FakeStructure,
+    Observed,
     dead_reckoning,
     noisy_odometry,
     observe,
@@ -27,7 +25,8 @@ from test_landmarks import (  # noqa: E402
 )
 
 from planeslam.backend.config import BackendConfig
-from planeslam.backend.isam2 import Isam2Backend, is_keyframe
+from planeslam.backend.isam2 import Isam2Backend
+from planeslam.backend.keyframes import is_keyframe
 from planeslam.core.errors import ConfigError  # noqa: E402
 from planeslam.core.geometry import angle_between  # noqa: E402
 from planeslam.factors import LandmarkConfig, LandmarkKeys, point_on_plane_factor  # noqa: E402
@@ -115,7 +114,8 @@ def test_isam2_beats_odometry_below_1cm(room_loop, robust_kernel):
         assert_pose_close(T_e, T_ref, 0.01, 0.5)
     planes = backend.plane_estimates()
     assert set(planes) == {j for o in observations for j in o.plane_truth.values()}
-    for j, (n, d) in planes.items():
+    for j, estimate in planes.items():
+        n, d = estimate.n_world, estimate.d_world
         assert np.degrees(angle_between(n, scene.planes[j].normal)) < 1.0
         assert abs(d - scene.planes[j].d) < 0.01
     corners = backend.corner_estimates()
@@ -146,13 +146,11 @@ def test_loop_closes_through_associated_landmarks(room_loop):
     assert translation_rmse(T_opt, T_true) < 0.007
 
 
-def one_plane_observation(scene, T_world_cam, plane_index: int) -> FakeObservation:
+def one_plane_observation(scene, T_world_cam, plane_index: int) -> Observed:
     full = observe(scene, T_world_cam, np.random.default_rng(0))
-    plane = next(p for p in full.segmentation.planes if full.plane_truth[p.id] == plane_index)
+    plane = next(p for p in full.planes if full.plane_truth[p.id] == plane_index)
     plane = dataclasses.replace(plane, id=0)
-    return FakeObservation(
-        full.timestamp, FakeSegmentation([plane]), FakeStructure([], []), {0: plane_index}, {}
-    )
+    return Observed(full.timestamp, (plane,), (), (), {0: plane_index}, {})
 
 
 def test_under_constrained_keyframes_do_not_raise(circle):
@@ -164,7 +162,7 @@ def test_under_constrained_keyframes_do_not_raise(circle):
     for i in range(6):
         obs = one_plane_observation(scene, T_true[i], floor) if i % 3 else observations[i]
         if i == 4:
-            obs = FakeObservation(obs.timestamp, FakeSegmentation([]), FakeStructure([], []))
+            obs = Observed(obs.timestamp, (), (), ())
         T_guess = T_prev if i == 0 else T_prev @ odometry[i - 1]
         T_prev = backend.add_keyframe(
             i, float(i), T_guess, obs, obs.plane_truth, None, None if i == 0 else odometry[i - 1]
@@ -238,7 +236,7 @@ def test_is_keyframe_and_config_validation():
         BackendConfig(relinearize_skip=0)
     with pytest.raises(ConfigError, match="odometry_sigma_trans_m"):
         BackendConfig(odometry_sigma_trans_m=-1.0)
-    obs = FakeObservation(0.0, FakeSegmentation([]), FakeStructure([], []))
+    obs = Observed(0.0, (), (), ())
     backend = Isam2Backend(config)
     backend.add_keyframe(3, 0.0, T0, obs, {})
     with pytest.raises(ConfigError, match="expected > the previous keyframe 3"):
@@ -285,7 +283,8 @@ def test_real_front_end_observations_on_rendered_frames():
     backend = Isam2Backend(backend_config())
     T_prev = T_true[0]
     for i, T in enumerate(T_true):
-        obs = front_end.process(render_frame(scene, T, config.camera, rng).depth_m, float(i))
+        depth_m = render_frame(scene, T, config.camera, rng).depth_m
+        obs = front_end.process(depth_m, float(i)).measurements()
         T_guess = T_prev if i == 0 else T_prev @ odometry[i - 1]
         plane_ids, corner_ids = backend.landmarks.associate(obs, T_guess)
         T_prev = backend.add_keyframe(
@@ -298,7 +297,7 @@ def test_real_front_end_observations_on_rendered_frames():
         dead_reckoning(T_true[0], odometry), T_true
     )
     # every estimated plane landmark is close to some true scene plane
-    for n, d in backend.plane_estimates().values():
+    for n, d in ((e.n_world, e.d_world) for e in backend.plane_estimates().values()):
         best = min(
             np.degrees(angle_between(n, p.normal)) + 100 * abs(d - p.d) for p in scene.planes
         )
@@ -315,8 +314,8 @@ def bench(keyframes: int = 100) -> None:
     T_true = trajectory.T_world_cam
     odometry = noisy_odometry(T_true, rng, *ODOM_SIGMAS)
     observations = [observe(scene, T, rng, timestamp=float(i)) for i, T in enumerate(T_true)]
-    planes = statistics.median(len(o.segmentation.planes) for o in observations)
-    corners = statistics.median(len(o.structure.corners) for o in observations)
+    planes = statistics.median(len(o.planes) for o in observations)
+    corners = statistics.median(len(o.corners) for o in observations)
     print(
         f"room_boxes_loop, {keyframes} keyframes, median {planes:.0f} planes and "
         f"{corners:.0f} corners observed per keyframe"

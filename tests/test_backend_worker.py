@@ -12,9 +12,10 @@ import gtsam
 import numpy as np
 import pytest
 
+from planeslam.backend.base import KeyframeInput
 from planeslam.backend.config import BackendConfig
 from planeslam.backend.isam2 import _new_isam2
-from planeslam.backend.worker import BackendWorker, landmark_observation
+from planeslam.backend.worker import Isam2Worker
 from planeslam.config import resolve_config
 from planeslam.core.errors import ConfigError, PlaneSlamError
 from planeslam.eval.metrics import slam_run_metrics
@@ -66,20 +67,48 @@ def first_observation(root: Path):
     return FrontEnd(cfg).process(frame.depth_m, frame.timestamp)
 
 
+def keyframe(index: int, measurements) -> KeyframeInput:
+    return KeyframeInput(index, 0.1 * index, np.eye(4), measurements, {}, {}, None)
+
+
 def test_errors_in_the_worker_reach_the_caller_and_finish_closes(loop: Path) -> None:
-    obs = first_observation(loop)
-    worker = BackendWorker(BackendConfig())
-    T = np.eye(4)
-    worker.submit(3, 0.0, T, obs, {}, {}, None)
-    worker.submit(2, 0.1, T, obs, {}, {}, None)  # index must increase: fails in the child
+    measurements = first_observation(loop).measurements()
+    worker = Isam2Worker(BackendConfig(final_iterations=0))
+    worker.submit(keyframe(3, measurements))
+    worker.submit(keyframe(2, measurements))  # index must increase: fails in the child
     assert worker.collect().index == 3
     with pytest.raises(ConfigError, match="expected > the previous keyframe 3"):
         worker.collect()
-    result = worker.finish(0)  # the child carried on after the error
+    result = worker.finish()  # the child carried on after the error
     assert list(result.keyframe_poses) == [3] and result.num_factors == 1
     with pytest.raises(PlaneSlamError, match="has finished"):
-        worker.submit(4, 0.2, T, obs, {}, {}, None)
+        worker.submit(keyframe(4, measurements))
     worker.close()  # idempotent
+
+
+def test_a_dropped_or_closed_slam_stops_its_worker(loop: Path) -> None:
+    cfg = resolve_config(loop)
+    with SLAM(cfg, "isam2") as slam:
+        process = slam.backend._process
+        assert process.poll() is None
+    assert process.wait(timeout=10) is not None  # leaving the block stopped it
+    dropped = SLAM(cfg, "isam2")
+    process = dropped.backend._process
+    del dropped
+    assert process.wait(timeout=10) is not None  # dropping the object stopped it
+
+
+def test_process_after_finish_or_close_raises_before_changing_anything(loop: Path) -> None:
+    cfg = resolve_config(loop)
+    frame = TumDataset(loop, cfg.camera, cfg.dataset)[0]
+    for end in ("finish", "close"):
+        slam = SLAM(cfg, "merge")
+        slam.process(frame.depth_m, frame.timestamp, frame.rgb)
+        getattr(slam, end)()
+        planes = dict(slam.map.planes)
+        with pytest.raises(PlaneSlamError, match="has finished"):
+            slam.process(frame.depth_m, frame.timestamp + 1.0, frame.rgb)
+        assert slam.frames == 1 and dict(slam.map.planes) == planes
 
 
 def test_an_interrupted_run_stops_the_worker(loop: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -102,17 +131,21 @@ def test_an_interrupted_run_stops_the_worker(loop: Path, monkeypatch: pytest.Mon
 
 def test_what_crosses_the_pipe_is_small_and_gives_the_same_factors(loop: Path) -> None:
     obs = first_observation(loop)
-    slim = landmark_observation(obs)
-    assert len(pickle.dumps(slim)) < 50_000 < len(pickle.dumps(dataclasses.replace(obs)))
+    measurements = obs.measurements()
+    sent = keyframe(0, measurements)
+    assert len(pickle.dumps(sent)) < 50_000 < len(pickle.dumps(obs))
+    received = pickle.loads(pickle.dumps(sent)).measurements
+    assert len(received.planes) == len(obs.segmentation.planes) >= 3
+    assert len(received.corners) == len(obs.structure.corners)
     T = np.eye(4)
     plane_ids = {p.id: p.id for p in obs.segmentation.planes}
     errors = []
-    for observation in (obs, slim):
+    for frame_measurements in (measurements, received):
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         keys = LandmarkKeys()
         values.insert(keys.pose(0), gtsam.Pose3(gtsam.Rot3.Yaw(0.01), np.array([0.01, 0, 0])))
         PlaneLandmarks(keys).add_observations(
-            graph, values, keys.pose(0), T, observation, plane_ids
+            graph, values, keys.pose(0), T, frame_measurements, plane_ids
         )
         errors.append([graph.at(i).error(values) for i in range(graph.size())])
     assert len(errors[0]) >= 3

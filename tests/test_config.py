@@ -36,6 +36,40 @@ def test_unknown_key_lists_valid_keys(tmp_path: Path) -> None:
     assert "\n" not in message
 
 
+@pytest.mark.parametrize(
+    "text, valid",
+    [
+        ("segmentation:\n  depth_sigma_a_m: 0.001\n", "valid keys: method, min_plane_points"),
+        ("intersections:\n  depth_sigma_b_per_m: 0.001\n", "valid keys: d_thresh_m"),
+        ("segmentation:\n  pixel_stride: 1\n", "organized, msac"),
+        ("segmentation:\n  organized:\n    hypotheses: 9\n", "valid keys: cell_size_px"),
+    ],
+)
+def test_moved_keys_are_rejected_naming_the_valid_ones(
+    tmp_path: Path, text: str, valid: str
+) -> None:
+    """The depth noise lives in `sensor`; method-only keys in `segmentation.<method>`."""
+    path = tmp_path / "old.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=f"unknown key.*{valid}"):
+        load_config(path)
+
+
+def test_nested_sections_load(tmp_path: Path) -> None:
+    path = tmp_path / "custom.yaml"
+    path.write_text(
+        "sensor:\n  sigma_a_m: 0.002\n"
+        "segmentation:\n  method: msac\n  organized:\n    pixel_stride: 1\n"
+        "  msac:\n    hypotheses: 64\n"
+    )
+    cfg = load_config(path)
+    assert cfg.sensor.sigma_a_m == 0.002 and cfg.sensor.sigma_b_per_m == 0.0019
+    assert cfg.segmentation.method == "msac"
+    assert cfg.segmentation.organized.pixel_stride == 1 and cfg.segmentation.msac.hypotheses == 64
+    save_yaml(cfg, tmp_path / "saved.yaml")
+    assert load_config(tmp_path / "saved.yaml") == cfg
+
+
 def test_unknown_section_is_rejected(tmp_path: Path) -> None:
     path = tmp_path / "bad.yaml"
     path.write_text("camrea: {}\n")
@@ -51,6 +85,9 @@ def test_unknown_section_is_rejected(tmp_path: Path) -> None:
         ("camera:\n  fx: -1\n", "fx must be > 0"),
         ("dataset:\n  undistort: 1\n", "dataset.undistort expects true or false"),
         ("segmentation:\n  method: ransac\n", "segmentation.method must be one of"),
+        ("segmentation:\n  organized:\n    pixel_stride: 5\n", "pixel_stride must be 1, 2"),
+        ("segmentation:\n  msac:\n    hypotheses: 0\n", "msac.hypotheses must be > 0"),
+        ("sensor:\n  sigma_a_m: -0.001\n", "sensor.sigma_a_m must be > 0"),
         ("camera: [1, 2]\n", "expected a mapping"),
     ],
 )

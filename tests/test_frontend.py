@@ -62,8 +62,9 @@ def test_truth_frames_see_three_box_faces():
 def test_box_and_room_with_the_real_segmenter(frame_index, stride):
     """Every pixel (stride 1) or every 2nd pixel of every 2nd row (the default)."""
     scene, T, frame = rendered("box_room_circle", frame_index)
+    organized = dataclasses.replace(CONFIG.segmentation.organized, pixel_stride=stride)
     cfg = dataclasses.replace(
-        CONFIG, segmentation=dataclasses.replace(CONFIG.segmentation, pixel_stride=stride)
+        CONFIG, segmentation=dataclasses.replace(CONFIG.segmentation, organized=organized)
     )
     obs = FrontEnd(cfg).process(frame.depth_m, 1.5)
     assert tuple(obs.stage_ms) == STAGES and all(v >= 0 for v in obs.stage_ms.values())

@@ -13,12 +13,12 @@ import functools
 import numpy as np
 import pytest
 
-from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import ConfigError, GeometryError
 from planeslam.core.geometry import invert_pose, plane_line, transform_plane, transform_points
 from planeslam.frontend.config import IntersectionConfig
 from planeslam.frontend.intersections import candidate_pairs, find_intersections, intersection_lines
-from planeslam.frontend.segmentation import Plane, Segmentation
+from planeslam.frontend.types import Plane, Segmentation
 from planeslam.sim.render import SCENES, render_frame
 from planeslam.sim.scenes import Box, Panel, Structure, look_at, make_scene
 
@@ -275,6 +275,9 @@ def test_bleeding_band_does_not_stretch_the_edge(rng):
     assert np.sort(edge.segment[:, 0]) == pytest.approx([-0.15, 0.15], abs=0.01)
     (loose,) = find_intersections(seg, IntersectionConfig(extent_min_sigmas=0.0))
     assert loose.length_m == pytest.approx(0.40, abs=0.01)
+    # sigma(z) is the sensor's: a model 10x noisier hides the band inside 3 sigma
+    (noisy,) = find_intersections(seg, sensor=DepthNoiseConfig(0.012, 0.019))
+    assert noisy.length_m == pytest.approx(0.40, abs=0.01)
 
 
 def test_d_min_literal_reading_drops_points_near_the_line(rng):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import subprocess
+import sys
 from dataclasses import dataclass, field
 
 import gtsam
@@ -13,56 +15,25 @@ from scipy.spatial.transform import Rotation
 
 from planeslam.core.errors import AssociationError, ConfigError
 from planeslam.core.geometry import angle_between, invert_pose
+from planeslam.core.types import (
+    CornerMeasurement,
+    EdgeMeasurement,
+    FrameMeasurements,
+    PlaneMeasurement,
+)
 from planeslam.factors import LandmarkConfig, LandmarkKeys, PlaneLandmarks
 from planeslam.sim.scenes import Scene, box_room_circle
 
 # ---------------------------------------------------------------- synthetic observations
-# Stand-ins with the fields the landmark code reads from a FrameObservation.
+# FrameMeasurements of a scene seen from a pose, with the truth of which scene plane and
+# corner each observed one is.
 
 TAN_HALF_FOV = (0.55, 0.41)  # about 58 x 45 deg, a Kinect-like field of view
 MAX_RANGE_M = 6.0
 
 
-@dataclass
-class FakePlane:
-    id: int
-    normal: np.ndarray
-    d: float
-    covariance: np.ndarray
-    num_points: int = 5000
-
-
-@dataclass
-class FakeEdge:
-    planes: tuple[int, int]
-    angle_rad: float
-    convex: bool = True
-    length_m: float = 0.3
-
-
-@dataclass
-class FakeCorner:
-    planes: tuple[int, int, int]
-    point: np.ndarray
-    convex_edges: int = 0
-
-
-@dataclass
-class FakeSegmentation:
-    planes: list[FakePlane]
-
-
-@dataclass
-class FakeStructure:
-    edges: list[FakeEdge]
-    corners: list[FakeCorner]
-
-
-@dataclass
-class FakeObservation:
-    timestamp: float
-    segmentation: FakeSegmentation
-    structure: FakeStructure
+@dataclass(frozen=True)
+class Observed(FrameMeasurements):
     plane_truth: dict[int, int] = field(default_factory=dict)
     """Observed plane id -> scene plane id."""
     corner_truth: dict[int, int] = field(default_factory=dict)
@@ -90,7 +61,7 @@ def observe(
     sigma_d_m: float = 0.003,
     sigma_corner_m: float = 0.005,
     timestamp: float = 0.0,
-) -> FakeObservation:
+) -> Observed:
     """Noisy camera-frame planes, edges and corners of the scene seen from T_world_cam."""
     grid = np.linspace(-0.98, 0.98, 25)
     uv = np.stack(np.meshgrid(grid, grid), -1).reshape(-1, 2)
@@ -111,7 +82,7 @@ def observe(
         d_cam = plane.d + plane.normal @ centre
         n_cam = Rotation.from_rotvec(rng.normal(scale=sigma_n_rad, size=3)).apply(n_cam)
         cov = np.diag([sigma_n_rad**2, sigma_n_rad**2, sigma_d_m**2])
-        planes.append(FakePlane(obs_id, n_cam, d_cam + rng.normal(scale=sigma_d_m), cov))
+        planes.append(PlaneMeasurement(obs_id, n_cam, d_cam + rng.normal(scale=sigma_d_m), cov))
         truth[obs_id] = plane.id
     obs_of = {s: o for o, s in truth.items()}
     edges = []
@@ -123,8 +94,8 @@ def observe(
             )
             if in_view(line, T_world_cam).any():
                 ids = tuple(sorted((obs_of[a], obs_of[b])))
-                angle = math.pi - angle_between(planes[ids[0]].normal, planes[ids[1]].normal)
-                edges.append(FakeEdge(ids, angle))
+                angle = math.pi - angle_between(planes[ids[0]].n_cam, planes[ids[1]].n_cam)
+                edges.append(EdgeMeasurement(ids, angle, convex=True))
     corners, corner_truth = [], {}
     for k, corner in enumerate(scene.corners):
         if (
@@ -133,14 +104,10 @@ def observe(
         ):
             p_cam = R.T @ (corner.point - centre) + rng.normal(scale=sigma_corner_m, size=3)
             corner_truth[len(corners)] = k
-            corners.append(FakeCorner(tuple(sorted(obs_of[j] for j in corner.plane_ids)), p_cam))
-    return FakeObservation(
-        timestamp,
-        FakeSegmentation(planes),
-        FakeStructure(edges, corners),
-        truth,
-        corner_truth,
-    )
+            corners.append(
+                CornerMeasurement(tuple(sorted(obs_of[j] for j in corner.plane_ids)), p_cam, 0)
+            )
+    return Observed(timestamp, tuple(planes), tuple(edges), tuple(corners), truth, corner_truth)
 
 
 def noisy_odometry(
@@ -201,7 +168,8 @@ def circle():
 def assert_map_recovered(scene, landmarks: PlaneLandmarks, angle_deg: float, offset_m: float):
     estimates = landmarks.plane_estimates()
     assert len(estimates) >= 8
-    for j, (n, d) in estimates.items():
+    for j, estimate in estimates.items():
+        n, d = estimate.n_world, estimate.d_world
         true = scene.planes[j]
         angle, offset = plane_errors(n, d, true.normal, true.d)
         assert angle < angle_deg and offset < offset_m, (true.name, angle, offset)
@@ -329,7 +297,7 @@ def test_keys_inserted_once_and_every_factor_has_values(circle):
     )
     assert again.new_keys == () and again.count("structure") == 0
     assert again.count("point_on_plane") == 0
-    assert again.count("plane") == len(observations[0].segmentation.planes)
+    assert again.count("plane") == len(observations[0].planes)
 
 
 def test_landmark_the_caller_already_created_is_not_inserted_again(circle):
@@ -346,7 +314,7 @@ def test_landmark_the_caller_already_created_is_not_inserted_again(circle):
     )
     assert keys.plane(j) not in added.new_keys
     assert j in added.new_planes  # known to the table from now on
-    assert len(added.new_keys) == len(obs.segmentation.planes) - 1
+    assert len(added.new_keys) == len(obs.planes) - 1
 
 
 def test_associate_recovers_the_true_landmarks(circle):
@@ -355,7 +323,7 @@ def test_associate_recovers_the_true_landmarks(circle):
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     # the first frame creates landmarks with fresh ids 0..N-1
     plane_ids, corner_ids = landmarks.associate(observations[0], T_true[0])
-    assert sorted(plane_ids.values()) == list(range(len(observations[0].segmentation.planes)))
+    assert sorted(plane_ids.values()) == list(range(len(observations[0].planes)))
     landmarks.add_observations(graph, values, 0, T_true[0], observations[0], plane_ids, corner_ids)
     scene_of = {lm: observations[0].plane_truth[o] for o, lm in plane_ids.items()}
     corner_scene_of = {lm: observations[0].corner_truth[o] for o, lm in corner_ids.items()}
@@ -364,7 +332,7 @@ def test_associate_recovers_the_true_landmarks(circle):
         obs = observations[i]
         T_pred = T_true[i] @ gtsam.Pose3.Expmap(np.r_[np.full(3, 0.01), np.full(3, 0.012)]).matrix()
         plane_ids, corner_ids = landmarks.associate(obs, T_pred)
-        assert set(plane_ids) == {p.id for p in obs.segmentation.planes}
+        assert set(plane_ids) == {p.id for p in obs.planes}
         for o, lm in plane_ids.items():
             if lm in scene_of:
                 assert scene_of[lm] == obs.plane_truth[o]
@@ -388,7 +356,7 @@ def test_bad_input_is_rejected(circle):
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     with pytest.raises(AssociationError, match="both map to landmark 7"):
         landmarks.add_observations(graph, values, 0, T_true[0], obs, {0: 7, 1: 7})
-    with pytest.raises(AssociationError, match="does not have"):
+    with pytest.raises(AssociationError, match="do not have"):
         landmarks.add_observations(graph, values, 0, T_true[0], obs, {99: 1})
     assert graph.size() == 0 and values.size() == 0
     with pytest.raises(ConfigError, match="robust_kernel"):
@@ -397,3 +365,14 @@ def test_bad_input_is_rejected(circle):
         LandmarkConfig(structure_tolerance_deg=60.0)
     with pytest.raises(ConfigError, match="corner_sigma_m"):
         LandmarkConfig(corner_sigma_m=0.0)
+
+
+def test_keys_equal_gtsams_symbols_without_importing_gtsam():
+    keys = LandmarkKeys(pose_char="x", plane_char="P", corner_char="C")
+    for index in (0, 1, 12345, 2**56 - 1):
+        assert keys.pose(index) == gtsam.symbol("x", index)
+        assert keys.plane(index) == gtsam.symbol("P", index)
+        assert keys.corner(index) == gtsam.symbol("C", index)
+    code = "import sys, planeslam.factors.config; print('gtsam' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

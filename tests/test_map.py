@@ -10,16 +10,19 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from planeslam.core.errors import AssociationError, ConfigError
+from planeslam.core.errors import AssociationError, ConfigError, MapError
 from planeslam.core.geometry import invert_pose, pose_from_quat, transform_points
 from planeslam.core.plane_fit import moments_of, plane_from_moments
+from planeslam.core.types import GravitySource
 from planeslam.frontend.intersections import Edge
 from planeslam.frontend.objects import FrameStructure
 from planeslam.frontend.pipeline import FrameObservation
 from planeslam.frontend.plane_graph import Corner
-from planeslam.frontend.segmentation import Plane, Segmentation
+from planeslam.frontend.types import Plane, Segmentation
 from planeslam.mapping.config import MapConfig
-from planeslam.mapping.map import Map, MapError, hull_on_plane
+from planeslam.mapping.gravity import UpOrigin, UpSource
+from planeslam.mapping.seating import hull_on_plane, seat_segments
+from planeslam.mapping.world_map import Map
 from planeslam.sim.scenes import get_scene
 
 UP = np.array([0.0, 0.0, 1.0])
@@ -66,7 +69,7 @@ def observation(
     corners: list[Corner] = (),  # type: ignore[assignment]
     up_cam: np.ndarray | None = None,
     timestamp: float = 0.0,
-    gravity_source: str = "plane 0",
+    gravity_source: GravitySource = GravitySource.PLANE,
 ) -> FrameObservation:
     structure = FrameStructure(
         edges=list(edges),
@@ -181,7 +184,7 @@ def test_merging_two_views_equals_the_fit_on_the_union_of_points(rng):
     T2[:3, 3] = base + 1.2 * n_true + rng.normal(0, 0.3, 3)
     m = Map()
     first = m.merge(observation([make_plane(0, transform_points(invert_pose(T1), a))]), T1)
-    pid = first[0]
+    pid = first.planes[0]
     n_before = m.planes[pid].normal.copy()
     m.merge(observation([make_plane(0, transform_points(invert_pose(T2), b))]), T2, [(0, pid)])
     count, c, S = moments_of(np.concatenate([a, b]))
@@ -203,7 +206,7 @@ def test_merged_outline_is_the_hull_of_both_outlines_on_the_plane(rng):
     a = rect_points(np.zeros(3), u, v)  # [0, 1] x [0, 1] on z = 0
     b = rect_points(np.array([0.5, 0.2, 0.0]), 1.5 * u, 0.8 * v)  # [0.5, 2] x [0.2, 1]
     m = Map()
-    pid = m.merge(observation([make_plane(0, transform_points(invert_pose(T1), a))]), T1)[0]
+    pid = m.merge(observation([make_plane(0, transform_points(invert_pose(T1), a))]), T1).planes[0]
     m.merge(observation([make_plane(0, transform_points(invert_pose(T2), b))]), T2, [(0, pid)])
     p = m.planes[pid]
     # hull of the union: (0,0) (1,0) (2,0.2) (2,1) (0,1)
@@ -235,11 +238,11 @@ def test_new_plane_ids_are_monotonic_and_pairs_beyond_the_gate_make_new_planes()
         [make_plane(0, rect_points(np.array([0, 0, 2.0]), np.eye(3)[0], np.eye(3)[1]))]
     )
     m = Map(MapConfig(merge_max_angle_deg=10))
-    assert m.merge(obs, np.eye(4)) == {0: 0}
+    assert m.merge(obs, np.eye(4)).planes == {0: 0}
     T = np.eye(4)
     T[:3, :3] = pose_from_quat(np.zeros(3), [np.sin(0.2), 0, 0, np.cos(0.2)])[:3, :3]  # 23 deg
-    assert m.merge(obs, T, [(0, 0)]) == {0: 1}
-    assert m.merge(obs, np.eye(4)) == {0: 2}
+    assert m.merge(obs, T, [(0, 0)]).planes == {0: 1}
+    assert m.merge(obs, np.eye(4)).planes == {0: 2}
     assert list(m.plane_ids()) == [0, 1, 2]
 
 
@@ -309,19 +312,68 @@ def test_gravity_comes_from_a_plane_based_estimate_and_follows_the_merged_floor(
         fallback.structure.edges,
         up_cam=np.array([1.0, 0, 0]),
         timestamp=1.0,
-        gravity_source="camera -y (no horizontal-looking plane)",
+        gravity_source=GravitySource.CAMERA,
     )
     m = Map()
     m.merge(fallback, np.eye(4))
-    assert m.gravity_source == "frame 1.0 (fallback)"
+    assert m.gravity_source == UpSource(UpOrigin.FRAME_FALLBACK, 1.0)
+    assert str(m.gravity_source) == "frame 1.0 (fallback)"
     planar = three_planes_observation(1.0, np.zeros(3))
     planar = observation(planar.segmentation.planes, up_cam=tilt, timestamp=2.0)
     m.merge(planar, np.eye(4), [(0, 0), (1, 1), (2, 2)])
-    assert m.gravity_source == "frame 2.0"
+    assert m.gravity_source == UpSource(UpOrigin.FRAME, 2.0)
+    assert str(m.gravity_source) == "frame 2.0"
     np.testing.assert_allclose(m.gravity_up, UP, atol=1e-12)  # snapped to the floor's normal
     m.set_gravity(tilt)
     m.reaggregate()
     np.testing.assert_allclose(m.gravity_up, tilt, atol=1e-15)  # a set up is kept
+    assert m.gravity_source == UpSource(UpOrigin.SET)
+
+
+@pytest.mark.parametrize(
+    ("text", "origin", "timestamp"),
+    [
+        ("", UpOrigin.UNKNOWN, None),
+        ("set", UpOrigin.SET, None),
+        ("frame 1305031102.175304", UpOrigin.FRAME, 1305031102.175304),
+        ("frame 7", UpOrigin.FRAME, 7),
+        ("frame 1.0 (fallback)", UpOrigin.FRAME_FALLBACK, 1.0),
+    ],
+)
+def test_up_source_text_round_trips(text, origin, timestamp):
+    source = UpSource.parse(text)
+    assert source == UpSource(origin, timestamp) and str(source) == text
+
+
+def test_up_source_reads_free_text_as_set_and_checks_its_timestamp():
+    assert UpSource.parse("camera -y (no horizontal-looking plane)") == UpSource(UpOrigin.SET)
+    assert UpSource.parse("frame x") == UpSource(UpOrigin.SET)
+    with pytest.raises(MapError, match="timestamp"):
+        UpSource(UpOrigin.FRAME)
+    with pytest.raises(MapError, match="timestamp"):
+        UpSource(UpOrigin.SET, 1.0)
+
+
+def test_a_loaded_fallback_up_is_still_replaced_by_a_plane_based_frame(tmp_path):
+    base = three_planes_observation(1.0, np.zeros(3))
+    m = Map()
+    m.merge(
+        observation(
+            base.segmentation.planes,
+            up_cam=np.array([1.0, 0, 0]),
+            timestamp=1.0,
+            gravity_source=GravitySource.CAMERA,
+        ),
+        np.eye(4),
+    )
+    data = m.to_dict()
+    assert data["gravity_source"] == "frame 1.0 (fallback)"  # readable in map.json
+    loaded = Map.load(m.save(tmp_path / "map.json"))
+    assert loaded.gravity_source == UpSource(UpOrigin.FRAME_FALLBACK, 1.0)
+    planar = observation(base.segmentation.planes, up_cam=UP, timestamp=2.0)
+    loaded.merge(planar, np.eye(4), [(0, 0), (1, 1), (2, 2)])
+    assert str(loaded.gravity_source) == "frame 2.0"
+    np.testing.assert_allclose(loaded.gravity_up, UP, atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- objects
@@ -347,7 +399,7 @@ def merge_scene_views(
         obs, order = scene_observation(ids, T)
         pairs = [(k, scene_to_map[s]) for k, s in enumerate(order) if s in scene_to_map]
         got = m.merge(obs, T, pairs)
-        scene_to_map.update({s: got[k] for k, s in enumerate(order)})
+        scene_to_map.update({s: got.planes[k] for k, s in enumerate(order)})
     return scene_to_map
 
 
@@ -429,12 +481,14 @@ def test_save_load_round_trip_is_exact_and_merging_continues_identically(tmp_pat
     path = m.save(tmp_path / "out" / "map.json")
     loaded = Map.load(path)
     assert_maps_equal(m, loaded)
+    assert loaded.gravity_source == m.gravity_source
+    assert loaded.save(tmp_path / "again.json").read_bytes() == path.read_bytes()
     assert not list((tmp_path / "out").glob(".*tmp"))  # the temp file was replaced
     # ids continue where they stopped, in both
     obs = observation(
         [make_plane(0, rect_points(np.array([0, 0, 2.0]), np.eye(3)[0], np.eye(3)[1]))]
     )
-    assert m.merge(obs, np.eye(4)) == loaded.merge(obs, np.eye(4)) == {0: 11}
+    assert m.merge(obs, np.eye(4)).planes == loaded.merge(obs, np.eye(4)).planes == {0: 11}
     assert_maps_equal(m, loaded)
 
 
@@ -538,18 +592,85 @@ def test_write_ply_is_readable_by_open3d_with_object_colours(tmp_path, rng):
     np.testing.assert_allclose(np.asarray(cloud.points)[-num_sparse:], m.sparse_points, atol=1e-6)
 
 
-def test_memory_bytes_has_every_part_and_sums_to_the_total(rng):
+def top_level_value_bytes(text: str) -> dict[str, int]:
+    """{key: bytes its value takes in `text`} for the top-level object of a JSON file."""
+    decoder = json.JSONDecoder()
+    sizes: dict[str, int] = {}
+    i = text.index("{") + 1
+    while True:
+        while text[i] in " \t\r\n,":
+            i += 1
+        if text[i] == "}":
+            return sizes
+        key, i = decoder.raw_decode(text, i)
+        while text[i] in " \t\r\n:":
+            i += 1
+        _, end = decoder.raw_decode(text, i)
+        sizes[key] = len(text[i:end].encode())
+        i = end
+
+
+def grid_points(n: int, offset: float) -> np.ndarray:
+    """`n` points 0.2 m apart on a line, at the centres of voxels of the default 0.05 m."""
+    x = 0.2 * np.arange(n) + 0.025
+    return np.column_stack([x, np.full(n, offset + 0.025), np.full(n, 3.025)])
+
+
+def test_memory_bytes_has_every_part_and_sums_to_the_total():
     m = Map()
     merge_scene_views(m)
-    m.add_sparse_points(rng.uniform(-1, 1, (100, 3)))
+    m.add_sparse_points(grid_points(100, 0.0))
     for encoding in ("arrays", "json"):
         mem = m.memory_bytes(encoding)
         assert list(mem) == ["planes", "edges", "corners", "objects", "sparse_cloud", "total"]
         assert mem["total"] == sum(v for k, v in mem.items() if k != "total")
         assert all(v > 0 for v in mem.values())
-    v = len(m.sparse_points)
-    assert m.memory_bytes()["sparse_cloud"] == v * (3 * 8 + 3 * 8 + 8 + 3)
-    assert m.memory_bytes()["edges"] == len(m.edges) * (2 * 8 + 6 * 8 + 8 + 8 + 1 + 8)
+
+
+def test_memory_bytes_as_json_are_the_bytes_of_each_part_in_the_saved_file(tmp_path):
+    m = Map()
+    merge_scene_views(m)
+    m.add_sparse_points(grid_points(100, 0.0))
+    text = m.save(tmp_path / "map.json").read_text(encoding="utf-8")
+    in_file = top_level_value_bytes(text)
+    mem = m.memory_bytes("json")
+    parts = [k for k in mem if k != "total"]
+    assert {k: in_file[k] for k in parts} == {k: mem[k] for k in parts}
+    assert mem["total"] < len(text.encode())  # the rest: schema, gravity, config
+
+
+def test_memory_bytes_in_memory_hold_the_arrays_and_grow_with_the_content():
+    """Independent of the per-record layout: each part holds at least the numpy arrays of
+    its records, fixed-size records cost the same each, and the sparse cloud grows by
+    point (twice the points, twice the bytes), not by re-observation."""
+    small, full = Map(), Map()
+    merge_scene_views(small, views=1)
+    merge_scene_views(full)
+    for m in (small, full):
+        mem = m.memory_bytes()
+        planes = m.planes.values()
+        assert mem["planes"] >= sum(
+            p.normal.nbytes + p.centroid.nbytes + p.scatter.nbytes + p.outline.nbytes
+            for p in planes
+        )
+        assert mem["edges"] >= sum(e.segment.nbytes for e in m.edges.values())
+        assert mem["corners"] >= sum(k.point.nbytes for k in m.corners.values())
+    a, b = small.memory_bytes(), full.memory_bytes()
+    assert len(small.planes) < len(full.planes)
+    assert 0 < len(small.edges) < len(full.edges) and 0 < len(small.corners) < len(full.corners)
+    assert a["planes"] < b["planes"] and a["total"] < b["total"]
+    # edges and corners are fixed-size records: the same bytes each in both maps
+    assert a["edges"] / len(small.edges) == b["edges"] / len(full.edges)
+    assert a["corners"] / len(small.corners) == b["corners"] / len(full.corners)
+
+    m = Map()
+    m.add_sparse_points(grid_points(100, 0.0))
+    one = m.memory_bytes()["sparse_cloud"]
+    assert len(m.sparse_points) == 100 and one >= m.sparse_points.nbytes  # float64 positions
+    m.add_sparse_points(grid_points(100, 0.0) + 0.001)  # the same 100 voxels again
+    assert m.memory_bytes()["sparse_cloud"] == one
+    m.add_sparse_points(grid_points(100, 1.0))  # 100 new voxels
+    assert len(m.sparse_points) == 200 and m.memory_bytes()["sparse_cloud"] == 2 * one
 
 
 # ----------------------------------------------------------------------------- the paper's run
@@ -614,8 +735,6 @@ def test_true_pose_merge_of_box_room_circle_sizes_box_and_room(tmp_path):
 
 
 def test_seat_segments_puts_segments_on_the_line_and_keeps_parallel_pairs():
-    from planeslam.mapping.map import seat_segments
-
     n1 = np.array([[0.0, 0, 1], [0, 0, 1]])
     n2 = np.array([[1.0, 0, 0], [0, 0, -1]])  # second pair parallel
     segs = np.array([[[0.1, 2.0, 0.2], [0.1, 0.0, 0.2]], [[1.0, 1, 1], [2.0, 2, 2]]])

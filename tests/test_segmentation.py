@@ -8,7 +8,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import ConfigError, GeometryError
 from planeslam.core.geometry import tangent_basis
 from planeslam.core.plane_fit import (
@@ -18,8 +18,12 @@ from planeslam.core.plane_fit import (
     plane_from_moments,
     smallest_eigh3,
 )
-from planeslam.frontend.config import SegmentationConfig
-from planeslam.frontend.segmentation import Segmentation, segment_planes
+from planeslam.frontend.cloud import organized_cloud
+from planeslam.frontend.config import MsacConfig, OrganizedConfig, SegmentationConfig
+from planeslam.frontend.msac import MsacSegmenter
+from planeslam.frontend.organized import OrganizedSegmenter
+from planeslam.frontend.segmentation import make_segmenter, segment_cloud, segment_planes
+from planeslam.frontend.types import Segmentation, Segmenter
 from planeslam.sim.render import plane_in_camera, render_frame
 from planeslam.sim.scenes import get_scene
 from tests.conftest import shared_sequence
@@ -28,6 +32,11 @@ CAMERA = CameraConfig()  # 640 x 480, f = 525
 RAYS = PixelRays.for_camera(CAMERA)
 ORGANIZED = SegmentationConfig()
 MSAC = SegmentationConfig(method="msac")
+
+
+def _organized(**changes) -> SegmentationConfig:
+    """The default config with `changes` to its `organized` section."""
+    return dataclasses.replace(ORGANIZED, organized=OrganizedConfig(**changes))
 
 
 def _render(scene_name: str, frame: int, seed: int):
@@ -101,7 +110,7 @@ def _check_plane_fields(seg: Segmentation, stride: int = 1) -> None:
 @pytest.mark.parametrize("stride", [1, 2])
 def test_organized_matches_truth(scene_name, frame, stride):
     scene, T_world_cam, rendered = _render(scene_name, frame, seed=frame + 1)
-    cfg = dataclasses.replace(ORGANIZED, pixel_stride=stride)
+    cfg = _organized(pixel_stride=stride)
     seg = segment_planes(rendered.depth_m, RAYS, cfg)
     assert seg.reason == ""
     assert _check_against_truth(seg, scene, T_world_cam, rendered) >= 3
@@ -177,7 +186,7 @@ def test_wall_split_by_an_occluder(merge, rng):
     wall_n = _unit([0.3, -0.1, -1.0])
     pole = (u >= 290) & (u < 340)
     depth = _analytic_depth([(wall_n, 2.5, None), ((0, 0, -1), 1.2, pole)], rng)
-    cfg = dataclasses.replace(ORGANIZED, merge_coplanar=merge)
+    cfg = _organized(merge_coplanar=merge)
     seg = segment_planes(depth, RAYS, cfg)
     walls = [p for p in seg.planes if abs(p.d - 2.5) < 0.02]
     assert len(walls) == (1 if merge else 2)
@@ -292,14 +301,58 @@ def test_wrong_depth_shape_names_the_shapes():
 def test_bad_camera_argument_and_config():
     with pytest.raises(ConfigError, match="CameraConfig or PixelRays"):
         segment_planes(np.ones((480, 640), np.float32), np.ones((480, 640, 3)))
-    with pytest.raises(ConfigError, match="cell_size_px"):
-        SegmentationConfig(cell_size_px=0)
-    with pytest.raises(ConfigError, match="pixel_stride"):
-        SegmentationConfig(pixel_stride=5)
+    with pytest.raises(ConfigError, match="organized.cell_size_px"):
+        OrganizedConfig(cell_size_px=0)
+    with pytest.raises(ConfigError, match="organized.pixel_stride"):
+        OrganizedConfig(pixel_stride=5)
     with pytest.raises(ConfigError, match="multiple of"):
-        SegmentationConfig(cell_size_px=15, pixel_stride=2)
+        OrganizedConfig(cell_size_px=15, pixel_stride=2)
+    with pytest.raises(ConfigError, match="msac.hypotheses"):
+        MsacConfig(hypotheses=0)
+    with pytest.raises(ConfigError, match="segmentation.min_plane_points"):
+        SegmentationConfig(min_plane_points=0)
     with pytest.raises(ConfigError, match="method"):
         SegmentationConfig(method="ransac")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="sensor.sigma_a_m"):
+        DepthNoiseConfig(sigma_a_m=0.0)
+    with pytest.raises(ConfigError, match="sensor.sigma_b_per_m"):
+        DepthNoiseConfig(sigma_b_per_m=-1e-3)
+
+
+@pytest.mark.parametrize(
+    ("method", "kind"), [("organized", OrganizedSegmenter), ("msac", MsacSegmenter)]
+)
+def test_factory_picks_the_method_and_entry_points_agree(method, kind):
+    """`make_segmenter` gives a `Segmenter` of the configured method, and
+    `segment_planes` = `organized_cloud` + `segment_cloud` = the segmenter itself."""
+    _, _, rendered = _render("box_room_circle", 4, seed=5)
+    cfg = SegmentationConfig(method=method)
+    segmenter: Segmenter = make_segmenter(cfg)
+    assert type(segmenter) is kind
+    cloud = organized_cloud(rendered.depth_m, RAYS, cfg.max_depth_m)
+    a = segmenter.segment(cloud, RAYS, np.random.default_rng(3), rendered.depth_m)
+    b = segment_cloud(cloud, RAYS, cfg, np.random.default_rng(3), depth_m=rendered.depth_m)
+    c = segment_planes(rendered.depth_m, RAYS, cfg, rng=np.random.default_rng(3))
+    assert len(a.planes) >= 3
+    for other in (b, c):
+        np.testing.assert_array_equal(a.labels, other.labels)
+        assert [p.d for p in a.planes] == [p.d for p in other.planes]
+
+
+def test_depth_noise_scales_the_inlier_band():
+    """The thresholds are multiples of the sensor's sigma(z): with a 10x noisier sensor
+    model the wall takes in a strip 5 cm off it that the default leaves out."""
+    u = np.broadcast_to(np.arange(CAMERA.width), (CAMERA.height, CAMERA.width))
+    depth = _analytic_depth([((0, 0, -1), 2.0, None)], None, noise=False)
+    depth[:, u[0] >= 600] += 0.05  # a 5 cm step along the right border
+    right = np.s_[:, 600:]
+    default = segment_planes(depth, RAYS, ORGANIZED)
+    noisy = segment_planes(
+        depth, RAYS, ORGANIZED, sensor=DepthNoiseConfig(sigma_a_m=0.012, sigma_b_per_m=0.019)
+    )
+    assert np.all(default.labels[right] != default.labels[240, 100])
+    assert np.all(noisy.labels[right] == noisy.labels[240, 100])
+    assert DepthNoiseConfig().sigma_m(2.0) == pytest.approx(0.0012 + 0.0019 * 4.0)
 
 
 # ------------------------------------------------------------------ real data
@@ -314,9 +367,9 @@ def test_redkitchen_frame0_big_planes():
     cfg = resolve_config(root)
     depth = TumDataset(root, cfg.camera)[0].depth_m
     rays = PixelRays.for_camera(cfg.camera)
-    organized = segment_planes(depth, rays, cfg.segmentation)
+    organized = segment_planes(depth, rays, cfg.segmentation, sensor=cfg.sensor)
     msac_cfg = dataclasses.replace(cfg.segmentation, method="msac")
-    msac = segment_planes(depth, rays, msac_cfg, rng=np.random.default_rng(0))
+    msac = segment_planes(depth, rays, msac_cfg, rng=np.random.default_rng(0), sensor=cfg.sensor)
     # table top, floor, cupboard fronts (left and back): four planes above 25000 px
     assert sum(np.sum(organized.labels == p.id) > 25000 for p in organized.planes) >= 4
     # inlier RMS < 1.5 cm; beyond 2.5 m the Kinect noise itself (sigma(2.6 m) = 1.4 cm)
@@ -324,7 +377,7 @@ def test_redkitchen_frame0_big_planes():
     # and sigma grows as z^2 across the plane)
     for p in organized.planes:
         rms = np.sqrt(np.mean((p.points @ p.normal + p.d) ** 2))
-        bound = 0.015 if p.centroid[2] < 2.5 else 1.25 * cfg.segmentation.sigma_m(p.centroid[2])
+        bound = 0.015 if p.centroid[2] < 2.5 else 1.25 * cfg.sensor.sigma_m(p.centroid[2])
         assert rms < bound, f"plane {p.id} ({p.num_points} px) inlier RMS {rms:.4f} m"
     for p in msac.planes[:4]:
         rms = np.sqrt(np.mean((p.points @ p.normal + p.d) ** 2))

@@ -14,8 +14,8 @@ from planeslam.config import resolve_config
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.dataset import TumDataset
-from planeslam.io.trajectory import read_tum
-from planeslam.mapping.map import Map
+from planeslam.io.trajectory import Trajectory, read_tum
+from planeslam.mapping.world_map import Map
 from planeslam.sim.render import synthesize
 from planeslam.slam import SLAM, run_frames
 
@@ -62,11 +62,14 @@ def test_box_room_circle_poses_and_objects(box_room: Path, backend: str) -> None
 
 @pytest.mark.slow
 def test_isam2_beats_merge_on_the_loop(loop: Path) -> None:
+    """Measured: iSAM2 0.62 mm, merge 6.6 mm (loops of seeds 5 and 6: 0.51 / 4.9 mm and
+    0.42 / 6.9 mm); half of merge's error leaves a wide margin and still fails a backend
+    that only matches the merge."""
     _, _, merge = run(loop, "merge")
     _, summary, isam2 = run(loop, "isam2")
     assert summary.lost_frames == 0
     assert isam2.ate_rmse_m < 0.01
-    assert isam2.ate_rmse_m <= merge.ate_rmse_m * 1.05
+    assert isam2.ate_rmse_m < 0.5 * merge.ate_rmse_m, (isam2.ate_rmse_m, merge.ate_rmse_m)
 
 
 @pytest.mark.slow
@@ -131,17 +134,39 @@ def test_process_needs_no_dataset(box_room: Path) -> None:
 def test_unknown_backend_and_bad_every(box_room: Path, tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="backend 'gtsam' unknown"):
         SLAM(resolve_config(box_room), "gtsam")
-    with pytest.raises(ConfigError, match="--every must be >= 1"):
+    with pytest.raises(ConfigError, match="every must be >= 1"):
         run_sequence(box_room, tmp_path, every=0)
 
 
+def static_ate_m(root: Path, estimate: Trajectory) -> float:
+    """ATE of a camera that never moves (every pose = the estimate's first) at the
+    estimate's timestamps, evaluated as the run is. evo's Umeyama alignment refuses one
+    repeated position, so the positions get 1 um of random spread (changes the score by
+    < 1e-6 m)."""
+    T = np.repeat(estimate.T_world_cam[:1], len(estimate), axis=0)
+    T[:, :3, 3] += np.random.default_rng(0).normal(0.0, 1e-6, (len(T), 3))
+    static = Trajectory(timestamps=estimate.timestamps, T_world_cam=T)
+    max_dt = resolve_config(root).dataset.max_time_difference_s
+    return evaluate_trajectory(root / "groundtruth.txt", static, max_dt).ate_rmse_m
+
+
 @pytest.mark.data
-def test_run_on_a_short_real_clip(tmp_path: Path) -> None:
-    """TUM fr1/xyz, 10 frames (0.3 s): tracked on planes, evaluated; too short for RPE,
-    which the summary says instead of failing."""
+@pytest.mark.parametrize("clip", ["tum_fr1_xyz_10f", "tum_fr1_desk_9f"])
+def test_run_on_a_short_real_clip(clip: str, tmp_path: Path) -> None:
+    """TUM fr1/xyz (10 frames) and fr1/desk (9 frames), 0.3 s each: tracked on planes,
+    evaluated; too short for RPE, which the summary says instead of failing.
+
+    On clips this short a camera that never moves already scores ~3.5 cm ATE (the camera
+    moves a few cm), so the run must beat that by far. Measured (merge): xyz 9.6 mm vs
+    static 34.4 mm, desk 10.5 mm vs static 35.7 mm."""
     from conftest import shared_sequence
 
-    result = run_sequence(shared_sequence("tum_fr1_xyz_10f"), tmp_path, backend="merge")
+    root = shared_sequence(clip)
+    result = run_sequence(root, tmp_path, backend="merge")
     assert result.summary.lost_frames == 0
-    assert result.evaluation is not None and result.evaluation.evaluation.ate_rmse_m < 0.05
+    assert result.evaluation is not None
+    ate = result.evaluation.evaluation.ate_rmse_m
+    static = static_ate_m(root, read_tum(tmp_path / "trajectory.txt"))
+    assert static > 0.03  # the clips do move: the check below has teeth
+    assert ate < 0.025 and ate < 0.5 * static, (ate, static)
     assert "RPE not computed" in result.text()

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from planeslam.app.suite import run_suite_command
 from planeslam.core.errors import ConfigError
-from planeslam.eval.suite import load_suite, run_suite_command
+from planeslam.eval.suite import load_suite
 
 
 def write_suite(path: Path, body: str) -> Path:

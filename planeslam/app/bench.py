@@ -372,7 +372,8 @@ def bench_frontend(
         raise ConfigError(f"bench: --frames must be >= 1, got {frames}")
     if reference_frames < 0:
         raise ConfigError(f"bench: reference_frames must be >= 0, got {reference_frames}")
-    folder = Path(dataset_dir) if dataset_dir is not None else synthetic_dataset(cache_dir)
+    cache = None if cache_dir is None else Path(cache_dir)
+    folder = Path(dataset_dir) if dataset_dir is not None else synthetic_dataset(cache)
     cfg = resolve_config(folder, config)
     dataset = TumDataset(folder, cfg.camera, cfg.dataset)
     if len(dataset) == 0:

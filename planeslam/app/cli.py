@@ -125,12 +125,12 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--backend",
         choices=BACKENDS,
-        default="isam2",
+        default=None,
         help="isam2: GTSAM factor graph (default); merge: the paper's frame-by-frame merging",
     )
     p.add_argument("--max-frames", type=int, default=None, help="process at most N frames")
-    p.add_argument("--every", type=int, default=1, help="use every K-th frame (default 1)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--every", type=int, default=None, help="use every K-th frame (default 1)")
+    p.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
     p.set_defaults(func=_cmd_run)
 
 
@@ -235,7 +235,7 @@ def _cmd_bench_frontend(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_suite(args: argparse.Namespace) -> int:
-    from planeslam.eval.suite import run_suite_command
+    from planeslam.app.suite import run_suite_command
 
     table = run_suite_command(args.suite, args.out, jobs=args.jobs, progress=True)
     print(table)

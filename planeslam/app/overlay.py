@@ -230,7 +230,8 @@ def draw_overlay(
         mask = (labels == plane.id).astype(np.uint8)
         if not mask.any():
             continue
-        colour = tuple(int(c) for c in PALETTE[plane.id % len(PALETTE)])
+        r, g, b = (int(c) for c in PALETTE[plane.id % len(PALETTE)])
+        colour = (r, g, b)
         contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
         contours = [c for c in contours if cv2.contourArea(c) >= MIN_OUTLINE_AREA_PX]
         cv2.drawContours(out, contours, -1, colour, width, cv2.LINE_AA)

@@ -14,20 +14,29 @@ processed so far.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from planeslam.config import resolve_config
+from planeslam.app.progress import progress_bar
+from planeslam.config import RunConfig, resolve_config
 from planeslam.core.config import save_yaml
 from planeslam.core.errors import ConfigError
 from planeslam.eval.metrics import RunMetrics, slam_run_metrics, write_metrics
 from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_report
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import TumWriter, write_tum
-from planeslam.slam import SLAM, RunSummary, frame_indices, run_frames
+from planeslam.slam import (
+    SLAM,
+    FrameResult,
+    RunSummary,
+    frame_indices,
+    run_frames,
+    slam_for_dataset,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -76,48 +85,50 @@ def run_sequence(
     out_dir: str | Path,
     config: str | Path | None = None,
     camera: str | None = None,
-    backend: str = "isam2",
+    backend: str | None = None,
     max_frames: int | None = None,
-    every: int = 1,
+    every: int | None = None,
     progress: bool = False,
-    seed: int = 0,
+    seed: int | None = None,
 ) -> RunResult:
-    """Run SLAM on a TUM-layout folder and write the outputs listed in the module docstring."""
+    """Run SLAM on a TUM-layout folder and write the outputs listed in the module docstring.
+    `backend`, `max_frames`, `every` and `seed` override the config's `run` section; the
+    saved config.yaml holds the values used."""
     root = Path(dataset_dir)
     out = Path(out_dir)
     cfg = resolve_config(root, config, camera)
+    run = RunConfig(
+        backend=cfg.run.backend if backend is None else backend,  # type: ignore[arg-type]
+        seed=cfg.run.seed if seed is None else seed,
+        every=cfg.run.every if every is None else every,
+        max_frames=cfg.run.max_frames if max_frames is None else max_frames,
+    )
+    cfg = dataclasses.replace(cfg, run=run)
+    backend = run.backend
     dataset = TumDataset(root, cfg.camera, cfg.dataset)
-    indices = frame_indices(len(dataset), max_frames, every)
+    indices = frame_indices(len(dataset), run.max_frames, run.every)
     if not indices:
         raise ConfigError(f"{root}: no frames to process")
     out.mkdir(parents=True, exist_ok=True)
     save_yaml(cfg, out / "config.yaml")
-    T_world_first = dataset.groundtruth_pose(dataset.timestamps[indices[0]])
-    slam = SLAM(cfg, backend, T_world_first=T_world_first, seed=seed)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(indices), desc=f"{backend} {root.name}", unit="frame")
+    slam = slam_for_dataset(cfg, dataset, indices[0])
     summary: RunSummary | None = None
     with (
+        slam,
+        progress_bar(len(indices), f"{backend} {root.name}", "frame", enabled=progress) as bar,
         TumWriter(out / "trajectory.txt", header=f"planeslam {backend} online") as writer,
         open(out / "frames.jsonl", "w", encoding="utf-8") as frames_fh,
     ):
 
-        def on_result(result) -> None:
+        def on_result(result: FrameResult) -> None:
             writer.write(result.timestamp, result.T_world_cam)
             frames_fh.write(json.dumps(result.to_record()) + "\n")
             frames_fh.flush()
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix_str(f"{result.path}", refresh=False)
+            bar.step(result.path.value)
 
         try:
             summary = run_frames(slam, dataset, indices, on_result)
         finally:
-            if bar is not None:
-                bar.close()
             if summary is None:  # interrupted or failed: keep what was computed
                 logger.warning("run stopped after %d frames; writing what it has", slam.frames)
                 _write_final(slam, out, backend, None)

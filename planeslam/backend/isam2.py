@@ -18,11 +18,9 @@ dropped for this keyframe and the update retried.
 from __future__ import annotations
 
 import logging
-import math
 import re
 import time
 from collections.abc import Iterable, Mapping
-from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
@@ -30,32 +28,13 @@ import numpy as np
 from planeslam.backend.config import BackendConfig
 from planeslam.core.errors import ConfigError, GeometryError
 from planeslam.core.geometry import as_pose, invert_pose
+from planeslam.core.types import FrameMeasurements, PlaneEstimate
 from planeslam.factors.config import LandmarkKeys
 from planeslam.factors.landmarks import AddedFactors, PlaneLandmarks
-
-if TYPE_CHECKING:
-    from planeslam.frontend.pipeline import FrameObservation
 
 logger = logging.getLogger(__name__)
 
 _KEY_IN_MESSAGE = re.compile(r"near variable\s+(\d+)")
-
-
-def is_keyframe(
-    config: BackendConfig, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int
-) -> bool:
-    """Whether a frame at T_now (4, 4) becomes a keyframe after the one at T_last_kf (4, 4).
-
-    True when it moved at least `keyframe_min_translation_m`, turned at least
-    `keyframe_min_rotation_deg`, or is `keyframe_max_frames` frames after it.
-    """
-    T_rel = invert_pose(as_pose(T_last_kf, "T_last_kf")) @ as_pose(T_now, "T_now")
-    cos = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return bool(
-        frames_since >= config.keyframe_max_frames
-        or np.linalg.norm(T_rel[:3, 3]) >= config.keyframe_min_translation_m
-        or math.degrees(math.acos(cos)) >= config.keyframe_min_rotation_deg
-    )
 
 
 class Isam2Backend:
@@ -98,10 +77,8 @@ class Isam2Backend:
             for i, t in self._timestamps.items()
         }
 
-    def plane_estimates(
-        self, ids: Iterable[int] | None = None
-    ) -> dict[int, tuple[np.ndarray, float]]:
-        """Plane landmark id -> (n_world (3,), d_world [m]), optimised (all, or `ids`)."""
+    def plane_estimates(self, ids: Iterable[int] | None = None) -> dict[int, PlaneEstimate]:
+        """Plane landmark id -> optimised estimate, world frame (all, or `ids`)."""
         return self.landmarks.plane_estimates(ids)
 
     def corner_estimates(self, ids: Iterable[int] | None = None) -> dict[int, np.ndarray]:
@@ -115,17 +92,17 @@ class Isam2Backend:
         index: int,
         timestamp: float,
         T_world_cam_guess: np.ndarray,
-        observation: FrameObservation,
+        measurements: FrameMeasurements,
         plane_ids: Mapping[int, int],
         corner_ids: Mapping[int, int] | None = None,
         odometry_T_prev_cur: np.ndarray | None = None,
         odometry_sigmas: tuple[float, float] | np.ndarray | None = None,
     ) -> np.ndarray:
-        """Add keyframe `index` with its observation, update iSAM2 -> optimised T_world_cam (4, 4).
+        """Add keyframe `index` with its measurements, update iSAM2 -> optimised T_world_cam (4, 4).
 
         index: frame index, strictly increasing; T_world_cam_guess (4, 4): initial
         pose (initialises new landmarks too); plane_ids / corner_ids: association of
-        the observation to landmark ids (see `PlaneLandmarks.add_observations`, or
+        the measurements to landmark ids (see `PlaneLandmarks.add_observations`, or
         `self.landmarks.associate`). odometry_T_prev_cur (4, 4): measured pose of
         this keyframe in the previous keyframe's camera frame; None derives it from
         the guess and the previous optimised pose. odometry_sigmas: (rot [rad],
@@ -171,12 +148,13 @@ class Isam2Backend:
             landmark_values,
             pose_key,
             T_guess,
-            observation,
+            measurements,
             plane_ids,
             corner_ids,
         )
         start = time.perf_counter()
         kept = self._update_with_retries(pose_key, T_guess, pose_graph, added, landmark_values)
+        assert self._isam is not None, "_update_with_retries leaves a smoother"
         self._estimate = self._isam.calculateEstimate()
         self.update_ms.append((time.perf_counter() - start) * 1e3)
         for factor in kept:
@@ -230,10 +208,12 @@ class Isam2Backend:
             for key in added.new_keys:
                 if key in used:
                     values.insert(key, _value_of(landmark_values, key, self.keys))
+            isam = self._isam
+            assert isam is not None, "_rebuild makes the smoother"
             try:
-                self._isam.update(graph, values)
+                isam.update(graph, values)
                 for _ in range(self.config.extra_updates):
-                    self._isam.update()
+                    isam.update()
             except RuntimeError as exc:
                 self.failures += 1
                 message = " ".join(str(exc).split())

@@ -1,23 +1,23 @@
 """The iSAM2 backend beside tracking: in a child process (the second core) or inline.
 
-`SLAM` submits each keyframe and goes on tracking; the keyframe's result (its
+`SLAM` submits each keyframe and goes on tracking; the keyframe's update (its
 optimised pose and the estimates of the landmarks it saw) is collected
 `backend.lag_frames` frames later, while the smoother has worked on it beside the
 front end. `inline` runs the same schedule in this process: the same results
 without the parallelism (tests, debugging, one-core machines).
 
 Why a process: gtsam holds the GIL through `ISAM2.update`, so a thread would not
-run beside the front end. What crosses the pipe is small: a keyframe's planes
-(normal, offset, fit covariance), corners and edges, none of its pixels or points.
+run beside the front end. What crosses the pipe is small and typed: a `KeyframeInput`
+(its `FrameMeasurements`: planes' normal, offset and fit covariance, corners, edges;
+none of its pixels or points) one way, a `KeyframeUpdate` or `BackendResult` back.
 Errors raised in the child (a `PlaneSlamError` such as the GeometryError of an
 update that cannot be made well posed) are raised again here when that keyframe's
-result is collected (inline: at once).
+update is collected (inline: at once).
 """
 
 from __future__ import annotations
 
 import collections
-import dataclasses
 import logging
 import multiprocessing
 import os
@@ -26,87 +26,72 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Mapping
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from planeslam.backend.base import BackendKind, BackendResult, KeyframeInput, KeyframeUpdate
 from planeslam.backend.config import BackendConfig
-from planeslam.backend.isam2 import Isam2Backend
+from planeslam.backend.keyframes import is_keyframe
 from planeslam.core.errors import PlaneSlamError
 from planeslam.core.native_tuning import single_native_threads
 
 if TYPE_CHECKING:
-    from planeslam.frontend.pipeline import FrameObservation
+    from planeslam.backend.isam2 import Isam2Backend
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
-class KeyframeUpdate:
-    """What the smoother made of one keyframe."""
-
-    index: int
-    """Frame index of the keyframe."""
-    T_world_cam: np.ndarray
-    """(4, 4) its pose after its own update."""
-    planes: dict[int, tuple[np.ndarray, float]]
-    """Plane landmark id -> (n_world (3,), d_world [m]) after the update, for the planes
-    this keyframe saw."""
-    corners: dict[int, np.ndarray]
-    """Corner landmark id -> p_world (3,) [m] after the update, for its corners."""
-    update_ms: float
-    """Wall-clock ms of the iSAM2 work for this keyframe (in the worker)."""
+class _AddKeyframe:
+    keyframe: KeyframeInput
 
 
 @dataclass(frozen=True)
-class BackendResult:
-    """The smoother's final state (after the batch optimisation of `finish`)."""
-
-    keyframe_poses: dict[int, tuple[float, np.ndarray]]
-    """Keyframe index -> (timestamp [s], optimised T_world_cam (4, 4))."""
-    planes: dict[int, tuple[np.ndarray, float]]
-    corners: dict[int, np.ndarray]
-    update_ms: list[float]
-    """Per keyframe, as in `KeyframeUpdate.update_ms`."""
-    batch_ms: float
-    """Wall-clock ms of the final batch optimisation."""
-    failures: int
-    """Indeterminate updates caught and handled."""
-    num_factors: int
+class _Finish:
+    iterations: int
+    """Gauss-Newton iterations of the final batch (0: none)."""
 
 
-def landmark_observation(observation: FrameObservation) -> FrameObservation:
-    """The parts of an observation the landmark factors read (planes' id, normal,
-    offset and fit covariance; corners; edges), without pixels, points, outlines or
-    objects: a few kB to send to another process instead of megabytes."""
-    empty = np.empty((0, 3))
-    planes = [
-        dataclasses.replace(p, points=empty, outline=empty) for p in observation.segmentation.planes
-    ]
-    structure = observation.structure
-    return dataclasses.replace(
-        observation,
-        segmentation=dataclasses.replace(
-            observation.segmentation, planes=planes, labels=np.empty((0, 0), np.int32)
-        ),
-        structure=dataclasses.replace(structure, graph=type(structure.graph)(), objects=[]),
-        cloud=None,
-    )
+@dataclass(frozen=True)
+class _Close:
+    pass
 
 
-class BackendWorker:
-    """An `Isam2Backend` driven ahead of the caller: `submit` keyframes, `collect` their
-    updates in the same order (each waits for its own), `finish` for the optimised whole."""
+_Request = _AddKeyframe | _Finish | _Close
+
+
+@dataclass(frozen=True)
+class _Reply:
+    value: KeyframeUpdate | BackendResult | None = None
+    error: PlaneSlamError | None = None
+    gone: bool = False
+    """The child's end of the connection closed (it exited or died)."""
+
+
+class Isam2Worker:
+    """The iSAM2 `Backend`: an `Isam2Backend` driven ahead of the caller. `submit`
+    keyframes, `collect` their updates in the same order (each waits for its own),
+    `finish` for the optimised whole."""
+
+    kind = BackendKind.ISAM2
+    objects_every_keyframe = False
 
     def __init__(self, config: BackendConfig, inline: bool = False) -> None:
+        self.config = config
+        self.lag_frames = config.lag_frames
         self.inline = inline
         self.pending = 0
         """Keyframes submitted and not collected yet."""
         self._closed = False
+        self._replies: collections.deque[_Reply] | queue.SimpleQueue[_Reply]
         if inline:
+            from planeslam.backend.isam2 import Isam2Backend
+
             self._backend: Isam2Backend | None = Isam2Backend(config)
-            self._replies: Any = collections.deque()
+            self._replies = collections.deque()
             return
         self._backend = None
         self._process, self._conn = _start_worker(config)
@@ -117,66 +102,58 @@ class BackendWorker:
             target=self._receive, name="planeslam-backend-replies", daemon=True
         )
         self._receiver.start()
-        self._result()  # 'ready': the child has imported gtsam (start-up, not run time)
+        self._reply()  # 'ready': the child has imported gtsam (start-up, not run time)
 
-    def submit(
-        self,
-        index: int,
-        timestamp: float,
-        T_world_cam_guess: np.ndarray,
-        observation: FrameObservation,
-        plane_ids: Mapping[int, int],
-        corner_ids: Mapping[int, int],
-        odometry_T_prev_cur: np.ndarray | None,
-    ) -> None:
-        """Hand keyframe `index` to the smoother (see `Isam2Backend.add_keyframe`) without
+    def is_keyframe(
+        self, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
+    ) -> bool:
+        return is_keyframe(self.config, T_last_kf, T_now, frames_since, new_planes)
+
+    def submit(self, keyframe: KeyframeInput) -> None:
+        """Hand a keyframe to the smoother (see `Isam2Backend.add_keyframe`) without
         waiting for it."""
-        args = (
-            index,
-            timestamp,
-            np.asarray(T_world_cam_guess, dtype=np.float64),
-            landmark_observation(observation),
-            dict(plane_ids),
-            dict(corner_ids),
-            odometry_T_prev_cur,
-        )
-        self._call("keyframe", args)
+        self._send(_AddKeyframe(keyframe))
         self.pending += 1
 
     def collect(self) -> KeyframeUpdate:
         """The update of the oldest keyframe not collected yet (waits for it)."""
         if not self.pending:
-            raise PlaneSlamError("BackendWorker.collect: no keyframe was submitted")
+            raise PlaneSlamError("Isam2Worker.collect: no keyframe was submitted")
         self.pending -= 1
-        return self._result()
+        update = self._reply()
+        assert isinstance(update, KeyframeUpdate)
+        return update
 
-    def finish(self, iterations: int) -> BackendResult:
-        """Run the final batch optimisation (`iterations` Gauss-Newton steps, 0 for none)
-        after every submitted keyframe and return the smoother's final state (updates
-        not collected are dropped); then close."""
+    def finish(self) -> BackendResult:
+        """Run the final batch optimisation (`final_iterations` Gauss-Newton steps) after
+        every submitted keyframe and return the smoother's final state (updates not
+        collected are dropped); then close."""
         while self.pending:
             self.collect()
-        self._call("finish", iterations)
+        self._send(_Finish(self.config.final_iterations))
         try:
-            return self._result()
+            result = self._reply()
+            assert isinstance(result, BackendResult)
+            return result
         finally:
             self.close()
 
     def close(self) -> None:
-        """Stop the worker process (idempotent)."""
+        """Stop the worker process (idempotent). With keyframes still queued (an
+        interrupted run) the child is stopped at once rather than after them."""
         if self._closed:
             return
         self._closed = True
-        self.pending = 0
+        busy, self.pending = self.pending, 0
         if self.inline:
             self._backend = None
             return
         try:
-            self._conn.send(("close", None))
+            self._conn.send(_Close())
         except (OSError, ValueError):
             pass
         try:
-            self._process.wait(timeout=5)
+            self._process.wait(timeout=0.2 if busy else 5)
         except subprocess.TimeoutExpired:
             self._process.kill()
             self._process.wait()
@@ -185,54 +162,72 @@ class BackendWorker:
 
     # ------------------------------------------------------------------ plumbing
 
-    def _call(self, kind: str, payload: Any) -> None:
+    def _send(self, request: _Request) -> None:
         if self._closed:
             raise PlaneSlamError("the iSAM2 backend has finished; create a new SLAM")
-        if self.inline:
-            self._replies.append(_handle(self._backend, kind, payload))
+        if self._backend is not None:
+            self._replies.append(_answer(self._backend, request))  # type: ignore[union-attr]
             return
         try:
-            self._conn.send((kind, payload))
+            self._conn.send(request)
         except (OSError, ValueError) as exc:
             raise PlaneSlamError(f"the iSAM2 backend process is gone ({exc})") from None
 
     def _receive(self) -> None:
         while True:
             try:
-                self._replies.put(self._conn.recv())
+                self._replies.put(self._conn.recv())  # type: ignore[union-attr]
             except (EOFError, OSError):
-                self._replies.put(("gone", None))
+                self._replies.put(_Reply(gone=True))  # type: ignore[union-attr]
                 return
 
-    def _result(self) -> Any:
-        if self.inline:
-            return self._replies.popleft()
-        status, reply = self._replies.get()
-        if status == "gone":
+    def _reply(self) -> KeyframeUpdate | BackendResult | None:
+        if isinstance(self._replies, collections.deque):
+            reply = self._replies.popleft()
+        else:
+            reply = self._replies.get()
+        if reply.gone:
             code = self._process.poll()
             self.close()
             raise PlaneSlamError(f"the iSAM2 backend process died (exit code {code})")
-        if status == "error":
-            raise reply
-        return reply
+        if reply.error is not None:
+            raise reply.error
+        return reply.value
 
 
-def _handle(backend: Isam2Backend, kind: str, payload: Any) -> Any:
+def _answer(backend: Isam2Backend, request: _Request) -> _Reply:
     """Run one request on `backend` (in the worker process, or inline)."""
-    if kind == "keyframe":
-        index, plane_ids, corner_ids = payload[0], payload[4], payload[5]
-        T = backend.add_keyframe(*payload)
+    try:
+        return _Reply(value=_handle(backend, request))
+    except PlaneSlamError as exc:
+        return _Reply(error=exc)
+    except Exception as exc:  # anything else still reaches the caller, as one line
+        return _Reply(error=PlaneSlamError(f"iSAM2 backend: {type(exc).__name__}: {exc}"))
+
+
+def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | BackendResult:
+    if isinstance(request, _AddKeyframe):
+        kf = request.keyframe
+        T = backend.add_keyframe(
+            kf.index,
+            kf.timestamp,
+            kf.T_world_cam,
+            kf.measurements,
+            kf.plane_ids,
+            kf.corner_ids,
+            kf.T_prev_cam,
+        )
         return KeyframeUpdate(
-            index=index,
+            index=kf.index,
             T_world_cam=T,
-            planes=backend.plane_estimates(plane_ids.values()),
-            corners=backend.corner_estimates(corner_ids.values()),
+            planes=backend.plane_estimates(kf.plane_ids.values()),
+            corners=backend.corner_estimates(kf.corner_ids.values()),
             update_ms=backend.update_ms[-1],
         )
-    if kind == "finish":
-        batch_ms = backend.optimize_batch(payload) if payload else 0.0
+    if isinstance(request, _Finish):
+        batch_ms = backend.optimize_batch(request.iterations) if request.iterations else 0.0
         return BackendResult(
-            keyframe_poses=backend.keyframe_poses(),
+            keyframe_poses={i: T for i, (_, T) in backend.keyframe_poses().items()},
             planes=backend.plane_estimates(),
             corners=backend.corner_estimates(),
             update_ms=list(backend.update_ms),
@@ -240,7 +235,7 @@ def _handle(backend: Isam2Backend, kind: str, payload: Any) -> Any:
             failures=backend.failures,
             num_factors=backend.num_factors,
         )
-    raise ValueError(f"unknown backend request {kind!r}")
+    raise ValueError(f"unknown backend request {request!r}")
 
 
 def _start_worker(config: BackendConfig) -> tuple[subprocess.Popen, Connection]:
@@ -271,10 +266,12 @@ def serve(fd: int) -> None:
     in and replies out, until 'close' or a closed connection."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from planeslam.backend.isam2 import Isam2Backend
+
     conn = Connection(fd)
     try:
         backend = Isam2Backend(conn.recv())
-        conn.send(("ok", "ready"))
+        conn.send(_Reply())  # ready
     except (EOFError, OSError):
         return
     with single_native_threads():
@@ -284,15 +281,9 @@ def serve(fd: int) -> None:
 def _serve_requests(conn: Connection, backend: Isam2Backend) -> None:
     while True:
         try:
-            kind, payload = conn.recv()
+            request = conn.recv()
         except (EOFError, OSError):
             return
-        if kind == "close":
+        if isinstance(request, _Close):
             return
-        try:
-            reply = ("ok", _handle(backend, kind, payload))
-        except PlaneSlamError as exc:
-            reply = ("error", exc)
-        except Exception as exc:  # anything else still reaches the caller, as one line
-            reply = ("error", PlaneSlamError(f"iSAM2 backend: {type(exc).__name__}: {exc}"))
-        conn.send(reply)
+        conn.send(_answer(backend, request))

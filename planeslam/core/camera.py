@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import overload
 
 import numpy as np
 
@@ -62,7 +63,8 @@ class CameraConfig:
             values = []
         if len(values) not in (4, 5):
             raise ConfigError(
-                f"--camera expects 'fx,fy,cx,cy[,depth_scale]' (4 or 5 numbers), got {text!r}"
+                "camera override: expected 'fx,fy,cx,cy[,depth_scale]' (4 or 5 numbers), "
+                f"got {text!r}"
             )
         changes = dict(zip(("fx", "fy", "cx", "cy", "depth_scale"), values, strict=False))
         return replace(self, **changes)  # type: ignore[arg-type]
@@ -86,3 +88,31 @@ class PixelRays:
             [(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy, np.ones(u.shape)], axis=-1
         )
         return cls(rays=rays.astype(np.float64))
+
+
+@dataclass(frozen=True)
+class DepthNoiseConfig:
+    """Depth noise of the sensor (Kinect-like): sigma(z) = a + b z^2 [m] at depth z [m].
+
+    Every depth-dependent distance threshold of the front end (segmentation inliers,
+    edge extents) is a multiple of sigma at the depth where it is applied.
+    """
+
+    sigma_a_m: float = 0.0012
+    """Constant term a [m]."""
+    sigma_b_per_m: float = 0.0019
+    """Quadratic coefficient b [1/m]."""
+
+    def __post_init__(self) -> None:
+        if not float(self.sigma_a_m) > 0:
+            raise ConfigError(f"sensor.sigma_a_m must be > 0, got {self.sigma_a_m!r}")
+        if not float(self.sigma_b_per_m) >= 0:
+            raise ConfigError(f"sensor.sigma_b_per_m must be >= 0, got {self.sigma_b_per_m!r}")
+
+    @overload
+    def sigma_m(self, z_m: float) -> float: ...
+    @overload
+    def sigma_m(self, z_m: np.ndarray) -> np.ndarray: ...
+    def sigma_m(self, z_m: np.ndarray | float) -> np.ndarray | float:
+        """sigma(z) = a + b z^2 [m] at depth z_m [m] (a number or an array of any shape)."""
+        return self.sigma_a_m + self.sigma_b_per_m * z_m * z_m

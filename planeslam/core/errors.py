@@ -27,5 +27,9 @@ class AssociationError(PlaneSlamError):
     """Data association failed (no pairs in a time window, no matching planes, ...)."""
 
 
+class MapError(PlaneSlamError):
+    """Bad input to the map (shapes, unknown ids) or an unreadable / unknown map file."""
+
+
 class EvaluationError(PlaneSlamError):
     """Trajectory evaluation cannot be done (empty files, no associated poses, ...)."""

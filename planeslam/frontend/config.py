@@ -2,18 +2,107 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal, Protocol
 
 import numpy as np
 
-from planeslam.core.camera import CameraConfig
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import ConfigError
 
 
 @dataclass(frozen=True)
+class OrganizedConfig:
+    """Parameters of the organised (cell-grid) segmenter (`planeslam.frontend.organized`)."""
+
+    cell_size_px: int = 16
+    """Side of the square image cells fit as small planes [pixels]."""
+    min_cell_valid_fraction: float = 0.5
+    """A cell needs at least this fraction of valid pixels to be fit."""
+    cell_max_rms_sigmas: float = 2.5
+    """A cell is planar when its fit RMS residual is below this many sigma(z)."""
+    merge_max_rms_sigmas: float = 3.0
+    """A cell joins a plane when the RMS distance of its points to that plane is below
+    this many sigma(z) (also the test for merging coplanar regions)."""
+    merge_max_angle_deg: float = 20.0
+    """Largest angle between the normals of a cell and its plane [deg]; widened to 3
+    standard deviations of the cell normal's noise for far cells (at most 45 deg)."""
+    merge_coplanar: bool = True
+    """Merge regions of the same plane even when they do not touch in the image."""
+    coplanar_max_angle_deg: float = 5.0
+    """Largest angle between two regions merged as one plane [deg]."""
+    pixel_stride: int = 2
+    """Fit and label every n-th pixel of every n-th row (1 = all; 2, the default, = a
+    quarter of the pixels: about 1.8x faster for the whole front end, planes, edges,
+    corners and box sizes within the same tolerances on the test scenes). Cells keep
+    `cell_size_px` in full-image pixels; `min_plane_points` stays in full-image pixels;
+    `Plane.points` / `num_points` are the fitted (strided) inliers;
+    `Segmentation.labels` stays full size (each label covers its n x n block)."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "cell_size_px",
+            "cell_max_rms_sigmas",
+            "merge_max_rms_sigmas",
+            "merge_max_angle_deg",
+            "coplanar_max_angle_deg",
+        ):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(
+                    f"segmentation.organized.{name} must be > 0, got {getattr(self, name)!r}"
+                )
+        if self.pixel_stride not in (1, 2, 3, 4):
+            raise ConfigError(
+                "segmentation.organized.pixel_stride must be 1, 2, 3 or 4, "
+                f"got {self.pixel_stride!r}"
+            )
+        if self.cell_size_px % self.pixel_stride or self.cell_size_px // self.pixel_stride < 3:
+            raise ConfigError(
+                f"segmentation.organized.cell_size_px={self.cell_size_px} must be a multiple "
+                f"of pixel_stride={self.pixel_stride} and at least 3 strided pixels"
+            )
+        if not 0 < self.min_cell_valid_fraction <= 1:
+            raise ConfigError(
+                "segmentation.organized.min_cell_valid_fraction must be in (0, 1], "
+                f"got {self.min_cell_valid_fraction}"
+            )
+
+
+@dataclass(frozen=True)
+class MsacConfig:
+    """Parameters of the paper's MSAC segmenter (`planeslam.frontend.msac`)."""
+
+    max_planes: int = 40
+    """Most planes extracted per frame."""
+    sample_points: int = 20000
+    """Random subsample of valid pixels the planes are searched in."""
+    hypotheses: int = 256
+    """Plane hypotheses (point triplets) scored per extracted plane."""
+    score_points: int = 3000
+    """Points of the subsample the hypotheses are scored on (truncated quadratic)."""
+    local_radius_px: int = 40
+    """The 2nd and 3rd point of a triplet lie within this image radius of the 1st
+    [pixels] (local sampling: far more all-inlier triplets than uniform sampling)."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "max_planes",
+            "sample_points",
+            "hypotheses",
+            "score_points",
+            "local_radius_px",
+        ):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(
+                    f"segmentation.msac.{name} must be > 0, got {getattr(self, name)!r}"
+                )
+
+
+@dataclass(frozen=True)
 class SegmentationConfig:
-    """Parameters of plane segmentation."""
+    """Parameters of plane segmentation: the method, what both methods share, and each
+    method's own section. The depth noise sigma(z) is the `sensor` section
+    (`planeslam.core.camera.DepthNoiseConfig`)."""
 
     method: Literal["organized", "msac"] = "organized"
     """'organized' (fast, image-grid based, default) or 'msac' (the paper's)."""
@@ -21,104 +110,33 @@ class SegmentationConfig:
     """Smallest plane kept [inlier pixels]."""
     max_depth_m: float = 6.0
     """Points farther than this are ignored [m]."""
-    depth_sigma_a_m: float = 0.0012
-    """Depth noise model sigma(z) = a + b z^2: constant term a [m]."""
-    depth_sigma_b_per_m: float = 0.0019
-    """Depth noise model sigma(z) = a + b z^2: quadratic coefficient b [1/m]."""
-    cell_size_px: int = 16
-    """organized: side of the square image cells fit as small planes [pixels]."""
-    min_cell_valid_fraction: float = 0.5
-    """organized: a cell needs at least this fraction of valid pixels to be fit."""
-    cell_max_rms_sigmas: float = 2.5
-    """organized: a cell is planar when its fit RMS residual is below this many sigma(z)."""
-    merge_max_rms_sigmas: float = 3.0
-    """organized: a cell joins a plane when the RMS distance of its points to that plane
-    is below this many sigma(z) (also the test for merging coplanar regions)."""
-    merge_max_angle_deg: float = 20.0
-    """organized: largest angle between the normals of a cell and its plane [deg]; widened
-    to 3 standard deviations of the cell normal's noise for far cells (at most 45 deg)."""
-    merge_coplanar: bool = True
-    """organized: merge regions of the same plane even when they do not touch in the image."""
-    coplanar_max_angle_deg: float = 5.0
-    """organized: largest angle between two regions merged as one plane [deg]."""
     max_incidence_deg: float = 78.0
     """Cells and planes seen more obliquely than this (angle between the viewing ray
     and the normal) are rejected [deg]: depth edges leave 'veils' of mixed pixels
     along the rays that look like planes nearly through the camera centre."""
     pixel_max_distance_sigmas: float = 3.0
-    """Largest distance of an inlier pixel from its plane, in sigma(z) (both methods)."""
-    max_planes: int = 40
-    """msac: most planes extracted per frame."""
-    msac_sample_points: int = 20000
-    """msac: random subsample of valid pixels the planes are searched in."""
-    msac_hypotheses: int = 256
-    """msac: plane hypotheses (point triplets) scored per extracted plane."""
-    msac_score_points: int = 3000
-    """msac: points of the subsample the hypotheses are scored on (truncated quadratic)."""
-    msac_local_radius_px: int = 40
-    """msac: the 2nd and 3rd point of a triplet lie within this image radius of the 1st
-    [pixels] (local sampling: far more all-inlier triplets than uniform sampling)."""
+    """Largest distance of an inlier pixel from its plane, in sigma(z)."""
     outline_epsilon_px: float = 3.0
     """Tolerance of the outline polygon simplification (cv2.approxPolyDP) [pixels]."""
-    pixel_stride: int = 2
-    """organized: fit and label every n-th pixel of every n-th row (1 = all; 2, the
-    default, = a quarter of the pixels: about 1.8x faster for the whole front end,
-    planes, edges, corners and box sizes within the same tolerances on the test
-    scenes). Cells keep `cell_size_px` in full-image pixels;
-    `min_plane_points` stays in full-image pixels; `Plane.points` / `num_points` are
-    the fitted (strided) inliers; `Segmentation.labels` stays full size (each label
-    covers its n x n block)."""
+    organized: OrganizedConfig = field(default_factory=OrganizedConfig)
+    """The organised (cell-grid) method's own parameters."""
+    msac: MsacConfig = field(default_factory=MsacConfig)
+    """The MSAC method's own parameters."""
 
     def __post_init__(self) -> None:
         if self.method not in ("organized", "msac"):
             raise ConfigError(
                 f"segmentation.method must be 'organized' or 'msac', got {self.method!r}"
             )
-        positive = (
+        for name in (
             "min_plane_points",
             "max_depth_m",
-            "depth_sigma_a_m",
-            "cell_size_px",
-            "cell_max_rms_sigmas",
-            "merge_max_rms_sigmas",
-            "merge_max_angle_deg",
-            "coplanar_max_angle_deg",
-            "pixel_max_distance_sigmas",
             "max_incidence_deg",
-            "max_planes",
-            "msac_sample_points",
-            "msac_hypotheses",
-            "msac_score_points",
-            "msac_local_radius_px",
+            "pixel_max_distance_sigmas",
             "outline_epsilon_px",
-        )
-        for name in positive:
+        ):
             if not float(getattr(self, name)) > 0:
                 raise ConfigError(f"segmentation.{name} must be > 0, got {getattr(self, name)!r}")
-        if self.pixel_stride not in (1, 2, 3, 4):
-            raise ConfigError(
-                f"segmentation.pixel_stride must be 1, 2, 3 or 4, got {self.pixel_stride!r}"
-            )
-        if self.cell_size_px % self.pixel_stride or self.cell_size_px // self.pixel_stride < 3:
-            raise ConfigError(
-                f"segmentation.cell_size_px={self.cell_size_px} must be a multiple of "
-                f"pixel_stride={self.pixel_stride} and at least 3 strided pixels"
-            )
-        if self.cell_size_px < 3:
-            raise ConfigError(f"segmentation.cell_size_px must be >= 3, got {self.cell_size_px}")
-        if not 0 < self.min_cell_valid_fraction <= 1:
-            raise ConfigError(
-                "segmentation.min_cell_valid_fraction must be in (0, 1], "
-                f"got {self.min_cell_valid_fraction}"
-            )
-        if self.depth_sigma_b_per_m < 0:
-            raise ConfigError(
-                f"segmentation.depth_sigma_b_per_m must be >= 0, got {self.depth_sigma_b_per_m}"
-            )
-
-    def sigma_m(self, z_m: np.ndarray | float) -> np.ndarray | float:
-        """Depth noise sigma(z) = a + b z^2 [m] at depth z_m [m] (any shape)."""
-        return self.depth_sigma_a_m + self.depth_sigma_b_per_m * z_m * z_m
 
 
 @dataclass(frozen=True)
@@ -154,16 +172,12 @@ class IntersectionConfig:
     all. Edge lengths stay within a few mm of the full-resolution ones (tests)."""
     extent_min_sigmas: float = 3.0
     """Extent of a side: ignore its edge points closer than this many depth-noise sigma(z)
-    to the other plane when enough farther ones remain (a quarter of them and
-    `min_edge_points`; 0 disables); points where that distance exceeds d_thresh / 2
-    (far, noisy) always count. Those points fit
-    both planes: where a face's plane meets its neighbour beyond the face's end (a box
-    side's plane running on along the floor), a segmenter gives some of the
-    neighbour's pixels to the face, and they would stretch the edge past the face."""
-    depth_sigma_a_m: float = 0.0012
-    """Depth noise sigma(z) = a + b z^2 for `extent_min_sigmas`: a [m] (as segmentation)."""
-    depth_sigma_b_per_m: float = 0.0019
-    """Depth noise sigma(z) = a + b z^2 for `extent_min_sigmas`: b [1/m] (as segmentation)."""
+    (the `sensor` section) to the other plane when enough farther ones remain (a quarter
+    of them and `min_edge_points`; 0 disables); points where that distance exceeds
+    d_thresh / 2 (far, noisy) always count. Those points fit both planes: where a face's
+    plane meets its neighbour beyond the face's end (a box side's plane running on along
+    the floor), a segmenter gives some of the neighbour's pixels to the face, and they
+    would stretch the edge past the face."""
 
     def __post_init__(self) -> None:
         for name in ("d_thresh_m",):
@@ -181,7 +195,7 @@ class IntersectionConfig:
         for name in ("min_edge_points", "adjacency_px", "min_contact_px", "label_stride"):
             if int(getattr(self, name)) < 1:
                 raise ConfigError(f"intersections.{name} must be >= 1, got {getattr(self, name)!r}")
-        for name in ("extent_min_sigmas", "depth_sigma_a_m", "depth_sigma_b_per_m"):
+        for name in ("extent_min_sigmas",):
             if not float(getattr(self, name)) >= 0:
                 raise ConfigError(f"intersections.{name} must be >= 0, got {getattr(self, name)!r}")
         for name in ("extent_trim_points", "max_points_per_plane"):
@@ -243,6 +257,8 @@ class FrontEndSettings(Protocol):
 
     @property
     def camera(self) -> CameraConfig: ...
+    @property
+    def sensor(self) -> DepthNoiseConfig: ...
     @property
     def segmentation(self) -> SegmentationConfig: ...
     @property

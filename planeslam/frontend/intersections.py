@@ -64,9 +64,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.frontend.config import IntersectionConfig
-from planeslam.frontend.segmentation import Plane, Segmentation
+from planeslam.frontend.types import Plane, Segmentation
 
 logger = logging.getLogger(__name__)
 
@@ -160,7 +161,9 @@ def _group_starts(counts: np.ndarray) -> np.ndarray:
 
 
 def find_intersections(
-    segmentation: Segmentation, config: IntersectionConfig | None = None
+    segmentation: Segmentation,
+    config: IntersectionConfig | None = None,
+    sensor: DepthNoiseConfig | None = None,
 ) -> list[Edge]:
     """All real intersections between the planes of one frame (paper eq. 1-6).
 
@@ -169,9 +172,11 @@ def find_intersections(
     are scored against all its partners with one (deg, 3) @ (3, K) product;
     everything after that runs on the points near a partner plane, for all
     pairs at once. Returns the edges sorted by plane ids; an empty list for
-    fewer than two planes.
+    fewer than two planes. `sensor`: the depth noise sigma(z) of `extent_min_sigmas`
+    (default `DepthNoiseConfig()`).
     """
     cfg = config or IntersectionConfig()
+    noise = sensor or DepthNoiseConfig()
     planes = {int(p.id): p for p in segmentation.planes}
     if len(planes) < 2:
         return []
@@ -251,7 +256,7 @@ def find_intersections(
     lo_g, hi_g = _trimmed_extents(te, ge, cnt, cfg.extent_trim_points)
     if cfg.extent_min_sigmas > 0:
         # Extents from the points that fit only their own plane, where enough remain.
-        sigma = cfg.depth_sigma_a_m + cfg.depth_sigma_b_per_m * ze * ze
+        sigma = noise.sigma_m(ze)
         # Where that band would be most of d_thresh (far points) all points count.
         amb = cfg.extent_min_sigmas * sigma
         core = (np.abs(se) >= amb) | (amb >= 0.5 * cfg.d_thresh_m)

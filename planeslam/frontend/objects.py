@@ -26,18 +26,21 @@ import networkx as nx
 import numpy as np
 from networkx.algorithms import isomorphism
 
+from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.geometry import unit
+from planeslam.core.types import GravitySource
 from planeslam.frontend.config import IntersectionConfig, ObjectConfig
 from planeslam.frontend.intersections import Edge, find_intersections
 from planeslam.frontend.plane_graph import (
     Corner,
+    GravityEstimate,
     aggregate_corners,
     build_plane_graph,
     estimate_gravity,
     find_corners,
     snap_edges_to_corners,
 )
-from planeslam.frontend.segmentation import Segmentation
+from planeslam.frontend.types import Segmentation
 
 logger = logging.getLogger(__name__)
 
@@ -144,8 +147,10 @@ class FrameStructure:
     objects: list[PlaneObject]
     gravity_up_cam: np.ndarray
     """(3,) unit up direction used for orientations, camera frame."""
-    gravity_source: str
-    """'config', 'plane <id>' (estimated from that plane) or the fallback used."""
+    gravity_source: GravitySource
+    """Where `gravity_up_cam` came from: the config, a plane, or the camera fallback."""
+    gravity_plane_id: int | None = None
+    """Id of the plane that gave `gravity_up_cam` (source `PLANE`), else None."""
     reason: str = ""
     """Why the result is empty or partial; '' when at least one object was found."""
 
@@ -296,6 +301,41 @@ def _all_parallel(segmentation: Segmentation, min_angle_deg: float) -> bool:
     return bool(np.all(cos >= np.cos(np.deg2rad(min_angle_deg))))
 
 
+def classify_and_size(
+    graph: nx.Graph,
+    object_planes: set[int],
+    up: np.ndarray,
+    axis_tol_deg: float,
+    patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
+    convex_part_only: bool = False,
+) -> tuple[str, tuple[float, ...]]:
+    """(class, size [m]) of the object made of `object_planes` in a plane graph (paper
+    4.3): the pattern table names the class and how it is sized (edge lengths along the
+    object's axes, or its extent). `convex_part_only` measures a pattern sized by its
+    convex edges within that part alone: in a merged map the concave contact edges with
+    the support (a box on the floor) come out longer than the object, and the
+    longest-edge rule keeps the worst."""
+    sub = graph.subgraph(object_planes).copy()  # a plain graph iterates faster than a view
+    cls, pattern, mapping = classify_object(sub, patterns)
+    size_from = pattern.size_from if pattern is not None else "extent"
+    if size_from == "extent":
+        return cls, measure_extent(graph, object_planes, up)
+    measured, within = object_planes, object_planes
+    if size_from == "convex_edges" and mapping is not None:
+        measured = convex_part(graph, list(mapping), object_planes)
+        if convex_part_only:
+            within = measured
+    size = measure_size(
+        graph,
+        measured,
+        within,
+        axis_tol_deg,
+        up,
+        pattern is not None and pattern.height_needs_bound,
+    )
+    return cls, size
+
+
 def find_objects(
     graph: nx.Graph,
     corners: Sequence[Corner],
@@ -310,23 +350,7 @@ def find_objects(
     objects: list[PlaneObject] = []
     for group in groups:
         object_planes = {p for k in group for p in corners[k].planes}
-        sub = graph.subgraph(object_planes).copy()  # a plain graph iterates faster than a view
-        cls, pattern, mapping = classify_object(sub, patterns)
-        size_from = pattern.size_from if pattern is not None else "extent"
-        if size_from == "extent":
-            size = measure_extent(graph, object_planes, up)
-        else:
-            measured = object_planes
-            if size_from == "convex_edges" and mapping is not None:
-                measured = convex_part(graph, list(mapping), object_planes)
-            size = measure_size(
-                graph,
-                measured,
-                object_planes,
-                ocfg.axis_tol_deg,
-                up,
-                pattern is not None and pattern.height_needs_bound,
-            )
+        cls, size = classify_and_size(graph, object_planes, up, ocfg.axis_tol_deg, patterns)
         objects.append(
             PlaneObject(
                 id=len(objects),
@@ -341,12 +365,13 @@ def find_objects(
 
 def gravity_up(
     segmentation: Segmentation, object_config: ObjectConfig | None = None
-) -> tuple[np.ndarray, str]:
-    """(up (3,) unit vector in the camera frame, source): from the config when given,
-    else estimated from the frame's planes (`plane_graph.estimate_gravity`)."""
+) -> GravityEstimate:
+    """The frame's up direction (camera frame): from the config when given, else
+    estimated from the frame's planes (`plane_graph.estimate_gravity`)."""
     ocfg = object_config or ObjectConfig()
     if ocfg.gravity_up_cam:
-        return unit(np.asarray(ocfg.gravity_up_cam, dtype=np.float64)), "config"
+        up = unit(np.asarray(ocfg.gravity_up_cam, dtype=np.float64))
+        return GravityEstimate(up, GravitySource.CONFIG)
     return estimate_gravity(segmentation.planes, ocfg.gravity_max_tilt_deg)
 
 
@@ -377,6 +402,7 @@ def build_structure(
     object_config: ObjectConfig | None = None,
     patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
     lap: Callable[[], None] | None = None,
+    sensor: DepthNoiseConfig | None = None,
 ) -> FrameStructure:
     """Edges, plane graph, corners and classified, sized objects of one frame.
 
@@ -387,13 +413,15 @@ def build_structure(
     parallel planes, no corner) gives an empty or partial result whose
     `reason` says why; it never raises for such frames. `lap`, when given, is
     called after each of the four stages (the front end times them with it).
+    `sensor`: the depth noise the intersections use (default `DepthNoiseConfig()`).
     """
     icfg = intersection_config or IntersectionConfig()
     ocfg = object_config or ObjectConfig()
     lap = lap or (lambda: None)
-    edges = find_intersections(segmentation, icfg) if len(segmentation.planes) >= 2 else []
+    edges = find_intersections(segmentation, icfg, sensor) if len(segmentation.planes) >= 2 else []
     lap()
-    up, source = gravity_up(segmentation, ocfg)
+    gravity = gravity_up(segmentation, ocfg)
+    up = gravity.up_cam
     graph = build_plane_graph(segmentation.planes, edges, up, ocfg.orientation_tol_deg)
     lap()
     corners = find_corners(graph, ocfg.corner_min_det, ocfg.corner_tol_m)
@@ -407,7 +435,8 @@ def build_structure(
         corners=corners,
         objects=objects,
         gravity_up_cam=up,
-        gravity_source=source,
+        gravity_source=gravity.source,
+        gravity_plane_id=gravity.plane_id,
         reason=structure_reason(segmentation, edges, corners, icfg.min_angle_deg),
     )
 

@@ -15,10 +15,17 @@ from typing import Any
 import numpy as np
 
 from planeslam.core.camera import PixelRays
+from planeslam.core.types import (
+    CornerMeasurement,
+    EdgeMeasurement,
+    FrameMeasurements,
+    PlaneMeasurement,
+)
 from planeslam.frontend.cloud import check_depth_shape, organized_cloud
 from planeslam.frontend.config import FrontEndSettings
 from planeslam.frontend.objects import FrameStructure, build_structure, to_map_dict
-from planeslam.frontend.segmentation import Segmentation, segment_cloud
+from planeslam.frontend.segmentation import make_segmenter
+from planeslam.frontend.types import Segmentation
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +54,25 @@ class FrameObservation:
         """Why the result is empty or partial; '' when all went well."""
         return self.segmentation.reason or self.structure.reason
 
+    def measurements(self) -> FrameMeasurements:
+        """The typed planes, edges and corners the landmark factors need (no pixels,
+        points, outlines or objects: a few kB)."""
+        return FrameMeasurements(
+            timestamp=self.timestamp,
+            planes=tuple(
+                PlaneMeasurement(p.id, p.normal, float(p.d), p.covariance)
+                for p in self.segmentation.planes
+            ),
+            edges=tuple(
+                EdgeMeasurement(e.planes, float(e.angle_rad), bool(e.convex))
+                for e in self.structure.edges
+            ),
+            corners=tuple(
+                CornerMeasurement(c.planes, c.point, int(c.convex_edges))
+                for c in self.structure.corners
+            ),
+        )
+
     def to_dict(self) -> dict[str, Any]:
         """frame.json: the shared map schema in the camera frame, plus timing."""
         data = to_map_dict(self.segmentation, self.structure)
@@ -69,6 +95,7 @@ class FrontEnd:
         self.config = config
         self.rays = PixelRays.for_camera(config.camera)
         self.rng = np.random.default_rng(seed)
+        self.segmenter = make_segmenter(config.segmentation, config.sensor)
 
     def process(self, depth_m: np.ndarray, timestamp: float = 0.0) -> FrameObservation:
         """(H, W) depth [m], 0 = invalid -> the frame's planes, edges, corners and objects.
@@ -82,10 +109,14 @@ class FrontEnd:
         t = [time.perf_counter()]
         cloud = organized_cloud(depth_m, self.rays, cfg.segmentation.max_depth_m)
         t.append(time.perf_counter())
-        seg = segment_cloud(cloud, self.rays, cfg.segmentation, rng=self.rng, depth_m=depth_m)
+        seg = self.segmenter.segment(cloud, self.rays, self.rng, depth_m)
         t.append(time.perf_counter())
         structure = build_structure(
-            seg, cfg.intersections, cfg.objects, lap=lambda: t.append(time.perf_counter())
+            seg,
+            cfg.intersections,
+            cfg.objects,
+            lap=lambda: t.append(time.perf_counter()),
+            sensor=cfg.sensor,
         )
         return FrameObservation(
             timestamp=timestamp,

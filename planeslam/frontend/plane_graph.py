@@ -20,8 +20,9 @@ import numpy as np
 
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import intersect_three_planes, point_segment_distance
+from planeslam.core.types import GravitySource
 from planeslam.frontend.intersections import Edge
-from planeslam.frontend.segmentation import Plane
+from planeslam.frontend.types import Plane
 
 logger = logging.getLogger(__name__)
 
@@ -41,8 +42,20 @@ class Corner:
     """How many of its three edges are convex (3: box corner, 0: room corner)."""
 
 
-def estimate_gravity(planes: Sequence[Plane], max_tilt_deg: float = 45.0) -> tuple[np.ndarray, str]:
-    """Up direction in the camera frame -> ((3,) unit vector, how it was found).
+@dataclass(frozen=True)
+class GravityEstimate:
+    """A frame's up direction (opposite to gravity) and where it came from."""
+
+    up_cam: np.ndarray
+    """(3,) unit up direction, camera frame."""
+    source: GravitySource
+    """Config, a plane of the frame, or the camera's -y axis as the fallback."""
+    plane_id: int | None = None
+    """Id of the plane it came from (source `PLANE`), else None."""
+
+
+def estimate_gravity(planes: Sequence[Plane], max_tilt_deg: float = 45.0) -> GravityEstimate:
+    """Up direction in the camera frame, estimated from a frame's planes.
 
     For a camera held roughly upright: the largest plane (by area) whose
     normal is within `max_tilt_deg` of the camera's up (-y, a floor or table
@@ -57,8 +70,8 @@ def estimate_gravity(planes: Sequence[Plane], max_tilt_deg: float = 45.0) -> tup
             up = np.sign(c) * np.asarray(plane.normal, dtype=np.float64)
             best = (float(plane.area_m2), up / np.linalg.norm(up), int(plane.id))
     if best is None:
-        return CAMERA_UP.copy(), "camera -y (no horizontal-looking plane)"
-    return best[1], f"plane {best[2]}"
+        return GravityEstimate(CAMERA_UP.copy(), GravitySource.CAMERA)
+    return GravityEstimate(best[1], GravitySource.PLANE, best[2])
 
 
 def plane_orientation(normal: np.ndarray, up: np.ndarray, tol_deg: float) -> tuple[str, str]:
@@ -190,7 +203,8 @@ def snap_edges_to_corners(
                 seg[end] = corner.point
     out = []
     for edge in edges:
-        pair = tuple(sorted(edge.planes))
+        i, j = sorted(edge.planes)
+        pair = (i, j)
         if pair in segments:
             seg = segments[pair]
             length = float(np.linalg.norm(seg[1] - seg[0]))

@@ -20,6 +20,7 @@ from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import AssociationError, DatasetFormatError
 from planeslam.io.config import DatasetConfig
 from planeslam.io.trajectory import Trajectory, read_tum
+from planeslam.io.tum_text import row_error, tum_rows
 
 log = logging.getLogger(__name__)
 
@@ -40,28 +41,15 @@ class Frame:
 
 def read_list_file(path: Path) -> tuple[np.ndarray, list[str]]:
     """Read a TUM `timestamp path` list -> (N,) timestamps and N relative paths."""
-    if not path.is_file():
-        raise DatasetFormatError(f"{path}: list file not found (expected rows 'timestamp path')")
+    expected = "timestamp path"
     stamps: list[float] = []
     names: list[str] = []
-    with open(path, encoding="utf-8-sig") as fh:
-        for lineno, line in enumerate(fh, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            parts = text.split()
-            try:
-                stamp = float(parts[0])
-            except ValueError:
-                parts = []
-            if len(parts) < 2:
-                raise DatasetFormatError(
-                    f"{path}:{lineno}: expected 'timestamp path', got {text[:80]!r}"
-                )
-            stamps.append(stamp)
-            names.append(parts[1])
-    if not names:
-        raise DatasetFormatError(f"{path}: no entries (expected rows 'timestamp path')")
+    for lineno, fields in tum_rows(path, "list", expected):
+        try:
+            stamps.append(float(fields[0]))
+            names.append(fields[1])
+        except (ValueError, IndexError):
+            raise row_error(path, lineno, f"'{expected}'", fields) from None
     return np.asarray(stamps), names
 
 
@@ -84,12 +72,12 @@ def associate_timestamps(
     used_a: set[int] = set()
     used_b: set[int] = set()
     result = []
-    for i, j, _ in pairs:
-        i, j = int(i), int(j)
-        if i not in used_a and j not in used_b:
-            used_a.add(i)
-            used_b.add(j)
-            result.append((i, j))
+    for row in pairs.tolist():
+        a, b = int(row[0]), int(row[1])
+        if a not in used_a and b not in used_b:
+            used_a.add(a)
+            used_b.add(b)
+            result.append((a, b))
     return sorted(result)
 
 
@@ -137,32 +125,22 @@ class TumDataset:
         )
 
     def _read_associations(self, path: Path) -> tuple[np.ndarray, list[Path], list[Path]]:
+        expected = "t_rgb rgb_path t_depth depth_path"
         stamps: list[float] = []
         rgb: list[Path] = []
         depth: list[Path] = []
-        with open(path, encoding="utf-8-sig") as fh:
-            for lineno, line in enumerate(fh, start=1):
-                text = line.strip()
-                if not text or text.startswith("#"):
-                    continue
-                parts = text.split()
-                try:
-                    t1, t2 = float(parts[0]), float(parts[2])
-                except (ValueError, IndexError):
-                    parts = []
-                if len(parts) < 4:
-                    raise DatasetFormatError(
-                        f"{path}:{lineno}: expected 't_rgb rgb_path t_depth depth_path', "
-                        f"got {text[:80]!r}"
-                    )
-                # associate.py writes its first argument first: accept either order.
-                if "depth" in parts[1] and "depth" not in parts[3]:
-                    t1, t2, parts = t2, t1, [parts[2], parts[3], parts[0], parts[1]]
-                stamps.append(t1)
-                rgb.append(self.root / parts[1])
-                depth.append(self.root / parts[3])
-        if not stamps:
-            raise DatasetFormatError(f"{path}: no entries")
+        for lineno, fields in tum_rows(path, "associations", expected):
+            try:
+                t1, t2 = float(fields[0]), float(fields[2])
+                name1, name2 = fields[1], fields[3]
+            except (ValueError, IndexError):
+                raise row_error(path, lineno, f"'{expected}'", fields) from None
+            # associate.py writes its first argument first: accept either order.
+            if "depth" in name1 and "depth" not in name2:
+                t1, name1, name2 = t2, name2, name1
+            stamps.append(t1)
+            rgb.append(self.root / name1)
+            depth.append(self.root / name2)
         return np.asarray(stamps), rgb, depth
 
     def _make_undistort_maps(self) -> tuple[np.ndarray, np.ndarray] | None:

@@ -14,6 +14,7 @@ import numpy as np
 
 from planeslam.core.errors import DatasetFormatError
 from planeslam.core.geometry import pose_from_quat, quat_from_pose
+from planeslam.io.tum_text import row_error, tum_rows
 
 
 @dataclass(frozen=True)
@@ -42,35 +43,22 @@ class Trajectory:
 
 
 def read_tum(path: str | Path) -> Trajectory:
-    """Read a TUM trajectory file; '#' comments and blank lines are skipped.
+    """Read a TUM trajectory file ('timestamp tx ty tz qx qy qz qw' rows), sorted by time.
 
-    Raises DatasetFormatError naming the file and line on a malformed row,
-    and on a file with no poses.
+    Raises DatasetFormatError naming the file and line on a malformed row, and on a
+    missing file or one with no poses.
     """
     path = Path(path)
-    if not path.is_file():
-        raise DatasetFormatError(f"{path}: trajectory file not found")
+    expected = "timestamp tx ty tz qx qy qz qw"
     rows: list[list[float]] = []
-    with open(path, encoding="utf-8-sig") as fh:
-        for lineno, line in enumerate(fh, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            parts = text.replace(",", " ").split()
-            try:
-                values = [float(p) for p in parts]
-            except ValueError:
-                values = []
-            if len(values) != 8 or not np.all(np.isfinite(values)):
-                raise DatasetFormatError(
-                    f"{path}:{lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', "
-                    f"got {text[:80]!r}"
-                )
-            rows.append(values)
-    if not rows:
-        raise DatasetFormatError(
-            f"{path}: no poses (expected rows 'timestamp tx ty tz qx qy qz qw')"
-        )
+    for lineno, fields in tum_rows(path, "trajectory", expected, entries="poses"):
+        try:
+            values = [float(p) for p in fields]
+        except ValueError:
+            values = []
+        if len(values) != 8 or not np.all(np.isfinite(values)):
+            raise row_error(path, lineno, f"8 numbers '{expected}'", fields)
+        rows.append(values)
     data = np.asarray(rows)
     norms = np.linalg.norm(data[:, 4:8], axis=1)
     if np.any(norms < 1e-6):

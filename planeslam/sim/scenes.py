@@ -35,8 +35,14 @@ from planeslam.io.trajectory import Trajectory
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 """World up direction (opposite to gravity) of every synthetic scene."""
 
-_FACE_AXES = (("+x", 0, 1.0), ("-x", 0, -1.0), ("+y", 1, 1.0), ("-y", 1, -1.0))
-_FACE_AXES += (("+z", 2, 1.0), ("-z", 2, -1.0))
+_FACE_AXES: tuple[tuple[str, int, float], ...] = (
+    ("+x", 0, 1.0),
+    ("-x", 0, -1.0),
+    ("+y", 1, 1.0),
+    ("-y", 1, -1.0),
+    ("+z", 2, 1.0),
+    ("-z", 2, -1.0),
+)
 _ROOM_FACE_NAMES = {"+z": "ceiling", "-z": "floor"}
 _BOX_FACE_NAMES = {"+z": "top", "-z": "bottom"}
 _TOUCH_TOL_M = 1e-6
@@ -464,8 +470,8 @@ def box_room_circle(
     `rng` is unused (the path is exact).
     """
     n = _check_frames(frames, 24)
-    room = Box("room", (0.0, 0.0, 0.55), (1.88, 1.88, 1.10), kind="room")
-    box = Box("box", (0.0, 0.0, 0.095), (0.38, 0.29, 0.19), omit_faces=("-z",))
+    room = Box("room", np.array((0.0, 0.0, 0.55)), np.array((1.88, 1.88, 1.10)), kind="room")
+    box = Box("box", np.array((0.0, 0.0, 0.095)), np.array((0.38, 0.29, 0.19)), omit_faces=("-z",))
     scene = make_scene("box_room_circle", (room, box), texture_seed=1)
     azimuth = np.deg2rad(7.5) + 2 * np.pi * np.arange(n) / n
     eye = np.stack([0.7 * np.cos(azimuth), 0.7 * np.sin(azimuth), np.full(n, 0.50)], axis=1)
@@ -491,13 +497,37 @@ def room_boxes_loop(
     """
     n = _check_frames(frames, 300)
     rng = rng if rng is not None else np.random.default_rng(0)
-    room = Box("room", (0.0, 0.0, 1.25), (4.0, 3.5, 2.5), kind="room")
+    room = Box("room", np.array((0.0, 0.0, 1.25)), np.array((4.0, 3.5, 2.5)), kind="room")
     boxes = (
         room,
-        Box("crate", (0.9, 0.7, 0.225), (0.6, 0.45, 0.45), rot_z(0.35), omit_faces=("-z",)),
-        Box("cube", (-1.0, 0.55, 0.25), (0.5, 0.5, 0.5), rot_z(-0.5), omit_faces=("-z",)),
-        Box("cabinet", (0.2, -1.2, 0.4), (0.9, 0.45, 0.8), rot_z(0.1), omit_faces=("-z",)),
-        Box("shoebox", (-0.6, -0.5, 0.06), (0.33, 0.2, 0.12), rot_z(0.9), omit_faces=("-z",)),
+        Box(
+            "crate",
+            np.array((0.9, 0.7, 0.225)),
+            np.array((0.6, 0.45, 0.45)),
+            rot_z(0.35),
+            omit_faces=("-z",),
+        ),
+        Box(
+            "cube",
+            np.array((-1.0, 0.55, 0.25)),
+            np.array((0.5, 0.5, 0.5)),
+            rot_z(-0.5),
+            omit_faces=("-z",),
+        ),
+        Box(
+            "cabinet",
+            np.array((0.2, -1.2, 0.4)),
+            np.array((0.9, 0.45, 0.8)),
+            rot_z(0.1),
+            omit_faces=("-z",),
+        ),
+        Box(
+            "shoebox",
+            np.array((-0.6, -0.5, 0.06)),
+            np.array((0.33, 0.2, 0.12)),
+            rot_z(0.9),
+            omit_faces=("-z",),
+        ),
     )
     scene = make_scene("room_boxes_loop", boxes, texture_seed=2)
     phase = np.arange(n) / max(n - 1, 1)
@@ -528,7 +558,7 @@ def zigzag_panels(
     """
     n = _check_frames(frames, 150)
     rng = rng if rng is not None else np.random.default_rng(0)
-    room = Box("room", (0.0, 0.0, 1.5), (10.0, 8.0, 3.0), kind="room")
+    room = Box("room", np.array((0.0, 0.0, 1.5)), np.array((10.0, 8.0, 3.0)), kind="room")
     angle = np.deg2rad(40.0)
     width, height = 1.0, 0.8
     dx, dy = width * np.cos(angle), width * np.sin(angle)
@@ -545,7 +575,7 @@ def zigzag_panels(
             normal = -normal
         R = np.stack([u, v, normal], axis=1)
         centre = (p0 + p1) / 2 + v * height / 2
-        panels.append(Panel(f"panel_{k}", centre, (width, height), R))
+        panels.append(Panel(f"panel_{k}", centre, np.array((width, height)), R))
     scene = make_scene("zigzag_panels", (room,), (Structure("zigzag", tuple(panels)),), 3)
     phase = np.arange(n) / max(n - 1, 1)
     x = -0.9 + 1.8 * phase

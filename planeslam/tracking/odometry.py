@@ -21,8 +21,9 @@ def rgbd_image(
 ) -> o3d.geometry.RGBDImage:
     """Open3D RGBDImage (intensity + depth [m], 0 beyond `depth_trunc_m`) from an (H, W, 3)
     uint8 RGB image and an (H, W) depth image in metres."""
-    color = o3d.geometry.Image(np.ascontiguousarray(rgb, dtype=np.uint8))
-    depth = o3d.geometry.Image(np.ascontiguousarray(depth_m, dtype=np.float32))
+    # Open3D's stubs type the buffer argument too narrowly for numpy arrays.
+    color = o3d.geometry.Image(np.ascontiguousarray(rgb, dtype=np.uint8))  # type: ignore[call-overload]
+    depth = o3d.geometry.Image(np.ascontiguousarray(depth_m, dtype=np.float32))  # type: ignore[call-overload]
     return o3d.geometry.RGBDImage.create_from_color_and_depth(
         color, depth, depth_scale=1.0, depth_trunc=depth_trunc_m, convert_rgb_to_intensity=True
     )

@@ -439,7 +439,7 @@ def refine_icp(
     if method == "point_to_plane":
         radius = normal_radius_m or (2.0 * voxel_m if voxel_m > 0 else max_distance_m)
         pc_tgt.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
-        estimation = reg.TransformationEstimationPointToPlane()
+        estimation: reg.TransformationEstimation = reg.TransformationEstimationPointToPlane()
     else:
         estimation = reg.TransformationEstimationPointToPoint()
     result = reg.registration_icp(

@@ -33,13 +33,15 @@ from __future__ import annotations
 
 import itertools
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose
+from planeslam.core.types import TrackingPath
 from planeslam.tracking.association import (
     Association,
     associate_with_corners,
@@ -57,18 +59,6 @@ if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
 
 logger = logging.getLogger(__name__)
-
-PATHS = (
-    "first",
-    "planes",
-    "relocalised",
-    "planes+odometry",
-    "planes+icp",
-    "odometry",
-    "icp",
-    "lost",
-)
-"""Every value of `TrackResult.path`."""
 
 _PERMUTATIONS_3 = np.array(list(itertools.permutations(range(3))))
 
@@ -147,8 +137,7 @@ class TrackResult:
 
     T_world_cam: np.ndarray
     """(4, 4) estimated pose (the prediction when lost)."""
-    path: str
-    """One of `PATHS`."""
+    path: TrackingPath
     reason: str = ""
     """Why a fallback was needed or why the frame is lost; '' on the first path."""
     plane_pairs: list[tuple[int, int]] = field(default_factory=list)
@@ -161,7 +150,20 @@ class TrackResult:
 
     @property
     def lost(self) -> bool:
-        return self.path == "lost"
+        return self.path is TrackingPath.LOST
+
+
+@dataclass(frozen=True)
+class PoseSolve:
+    """A closed-form pose and the correspondences it was solved from."""
+
+    registration: RegistrationResult
+    association: Association
+
+    @property
+    def T(self) -> np.ndarray:
+        """(4, 4) T_world_cam."""
+        return self.registration.T
 
 
 def _trusted(reg: RegistrationResult, cfg: TrackingConfig) -> bool:
@@ -213,7 +215,7 @@ class Tracker:
         self.odometry = odometry
         self._previous_cloud: np.ndarray | None = None
         """(H, W, 3) organised cloud of the last tracked frame (ICP fallback)."""
-        self._previous_rgbd = None
+        self._previous_rgbd: tuple[np.ndarray, np.ndarray] | None = None
         self._T_world_previous: np.ndarray | None = None
         self.lost_streak = 0
         """Frames lost in a row up to now."""
@@ -269,9 +271,7 @@ class Tracker:
             T_prior=T_prior,
         )
 
-    def register(
-        self, frame: FrameView, view: MapView, T_pred: np.ndarray
-    ) -> tuple[RegistrationResult, Association] | None:
+    def register(self, frame: FrameView, view: MapView, T_pred: np.ndarray) -> PoseSolve | None:
         """Closed-form pose from the planes and corners associated under T_pred.
 
         Solved, re-associated under the solution and solved again; after each solve the
@@ -279,7 +279,7 @@ class Tracker:
         border was mis-segmented) are dropped and the pose re-solved without them, so one
         outlier does not cost the frame its plane pose. None without correspondences."""
         T = T_pred
-        result: tuple[RegistrationResult, Association] | None = None
+        result: PoseSolve | None = None
         for _ in range(2):
             assoc = self._associate(frame, view, T)
             if not assoc.planes:
@@ -292,7 +292,7 @@ class Tracker:
                 if not kept.planes:
                     return result
                 assoc, reg = kept, self._solve(frame, view, kept, T_pred)
-            result, T = (reg, assoc), reg.T
+            result, T = PoseSolve(reg, assoc), reg.T
         return result
 
     def _inliers(
@@ -389,9 +389,7 @@ class Tracker:
         close = (cos >= np.cos(np.radians(cfg.max_angle_deg))) & (offset <= cfg.max_offset_m)
         return np.count_nonzero(close.any(axis=2), axis=1)
 
-    def relocalise(
-        self, frame: FrameView, view: MapView, T_pred: np.ndarray
-    ) -> tuple[RegistrationResult, Association] | None:
+    def relocalise(self, frame: FrameView, view: MapView, T_pred: np.ndarray) -> PoseSolve | None:
         """Best hypothesis, refined by `register`; None when none is trusted.
 
         Hypotheses are ranked by how many observed planes find a partner under them (then
@@ -417,14 +415,18 @@ class Tracker:
             if count[k] < 3:
                 break
             candidate = self.register(frame, view, T[k])
-            if candidate is None or not _trusted(candidate[0], cfg):
+            if candidate is None or not _trusted(candidate.registration, cfg):
                 continue
-            reg = candidate[0]
+            reg = candidate.registration
             residual = (
                 float(np.mean(reg.plane_angle_residual_rad)) / np.radians(cfg.sigma_angle_deg)
                 + float(np.mean(np.abs(reg.plane_offset_residual_m))) / cfg.sigma_offset_m
             )
-            key = (-len(candidate[1].planes), -len(candidate[1].corners), residual)
+            key = (
+                -len(candidate.association.planes),
+                -len(candidate.association.corners),
+                residual,
+            )
             if best_key is None or key < best_key:
                 best, best_key = candidate, key
         return best
@@ -448,6 +450,7 @@ class Tracker:
         source, target = self._points(cloud), self._points(self._previous_cloud)
         if len(source) < 100 or len(target) < 100:
             return None
+        assert self._T_world_previous is not None, "set with the previous cloud"
         T_prev_world = invert_pose(self._T_world_previous)
         try:
             icp = refine_icp(
@@ -470,6 +473,7 @@ class Tracker:
         previous frame are (rgb, depth_m) pairs, turned into Open3D images only here."""
         if self.odometry is None or rgbd is None or self._previous_rgbd is None:
             return None
+        assert self._T_world_previous is not None, "set with the previous frame"
         T_prev_cur = self.odometry.motion(
             self.odometry.image(*rgbd),
             self.odometry.image(*self._previous_rgbd),
@@ -492,8 +496,9 @@ class Tracker:
         cfg = self.config
         frame = FrameView.of(observation)
         cloud = observation.cloud if cfg.icp else None
-        need_rgbd = cfg.rgbd_odometry and self.odometry is not None and rgb is not None
-        rgbd = (rgb, depth_m) if need_rgbd else None
+        rgbd = None
+        if cfg.rgbd_odometry and self.odometry is not None and rgb is not None:
+            rgbd = (rgb, depth_m) if depth_m is not None else None
         result = self._track(frame, view, T_pred, cloud, rgbd)
         self.lost_streak = self.lost_streak + 1 if result.lost else 0
         if not result.lost:
@@ -505,61 +510,74 @@ class Tracker:
         """The paths of the module docstring, in order, on prepared inputs."""
         cfg = self.config
         if view.empty:
-            return TrackResult(T_pred, "first", "empty map: the frame starts it")
+            return TrackResult(T_pred, TrackingPath.FIRST, "empty map: the frame starts it")
         reasons = []
-        reg = self.register(frame, view, T_pred)
-        path = "planes"
+        solve = self.register(frame, view, T_pred)
+        path = TrackingPath.PLANES
         if (
-            reg is None
-            or not _trusted(reg[0], cfg)
-            or reg[0].status
-            in (
-                RegistrationStatus.TOO_FEW,
-                RegistrationStatus.DEGENERATE_ROTATION,
-            )
+            solve is None
+            or not _trusted(solve.registration, cfg)
+            or solve.registration.status
+            in (RegistrationStatus.TOO_FEW, RegistrationStatus.DEGENERATE_ROTATION)
         ):
             reasons.append(
                 "no plane matched the map under the prediction"
-                if reg is None
-                else f"plane pose {reg[0].status.value}"
-                + ("" if _trusted(reg[0], cfg) else " with residuals beyond the gates")
+                if solve is None
+                else f"plane pose {solve.registration.status.value}"
+                + ("" if _trusted(solve.registration, cfg) else " with residuals beyond the gates")
             )
             relocalised = self.relocalise(frame, view, T_pred) if cfg.relocalise else None
-            if relocalised is not None and _trusted(relocalised[0], cfg):
-                reg, path = relocalised, "relocalised"
+            if relocalised is not None:
+                solve, path = relocalised, TrackingPath.RELOCALISED
             else:
                 if cfg.relocalise:
                     reasons.append("no corner or plane-triple hypothesis fits three planes")
-                reg = None if reg is None or not _trusted(reg[0], cfg) else reg
-        if reg is not None and reg[0].status is RegistrationStatus.OK:
-            return self._result(frame, view, reg, path, "; ".join(reasons))
+                solve = None if solve is None or not _trusted(solve.registration, cfg) else solve
+        if solve is not None and solve.registration.status is RegistrationStatus.OK:
+            return self._result(frame, view, solve, path, "; ".join(reasons))
         # Point-based fallbacks, best first: RGB-D odometry (photometric + geometric, very
         # accurate from a good start), then ICP.
-        fallbacks = (("odometry", lambda T0: self._rgbd(rgbd, T0)),)
+        fallbacks: list[tuple[TrackingPath, TrackingPath, Callable[[np.ndarray], Any]]] = [
+            (TrackingPath.ODOMETRY, TrackingPath.PLANES_ODOMETRY, lambda T0: self._rgbd(rgbd, T0))
+        ]
         if cloud is not None:
-            fallbacks += (("icp", lambda T0: self._icp(cloud, T0)),)
-        if reg is not None and reg[0].status is RegistrationStatus.DEGENERATE_TRANSLATION:
+            fallbacks.append(
+                (TrackingPath.ICP, TrackingPath.PLANES_ICP, lambda T0: self._icp(cloud, T0))
+            )
+        if (
+            solve is not None
+            and solve.registration.status is RegistrationStatus.DEGENERATE_TRANSLATION
+        ):
             reasons.append("translation not observable from planes")
-            for name, method in fallbacks:
-                T = method(reg[0].T)
+            for _, with_planes, method in fallbacks:
+                T = method(solve.T)
                 if T is not None:
-                    T = _fill_translation(reg[0], T)
-                    return self._result(frame, view, reg, f"planes+{name}", "; ".join(reasons), T)
+                    T = _fill_translation(solve.registration, T)
+                    return self._result(frame, view, solve, with_planes, "; ".join(reasons), T)
             reasons.append("no fallback filled it")
-        T_init = reg[0].T if reg is not None else T_pred
-        for name, method in fallbacks:
+        T_init = solve.T if solve is not None else T_pred
+        for alone, _, method in fallbacks:
             T = method(T_init)
             if T is not None:
-                return self._result(frame, view, reg, name, "; ".join(reasons), T)
+                return self._result(frame, view, solve, alone, "; ".join(reasons), T)
         reasons.append("no fallback registered the frame")
-        return TrackResult(T_pred, "lost", "; ".join(reasons))
+        return TrackResult(T_pred, TrackingPath.LOST, "; ".join(reasons))
 
-    def _result(self, frame, view, reg, path, reason, T=None) -> TrackResult:
+    def _result(
+        self,
+        frame: FrameView,
+        view: MapView,
+        solve: PoseSolve | None,
+        path: TrackingPath,
+        reason: str,
+        T: np.ndarray | None = None,
+    ) -> TrackResult:
         """TrackResult with the correspondences of the final pose: those the plane pose was
         solved from (outliers dropped), or, when a fallback moved the pose to T, those
         under T."""
         if T is None:
-            T_final, assoc = reg[0].T, reg[1]
+            assert solve is not None, "a pose without a fallback comes from the planes"
+            T_final, assoc = solve.T, solve.association
         else:
             T_final, assoc = T, self._associate(frame, view, T)
         cfg = self.config

@@ -1,0 +1,138 @@
+"""The interface between the orchestrator and a backend, and the values that cross it.
+
+A backend takes keyframes (`submit`), returns one `KeyframeUpdate` per keyframe in
+submission order (`collect`, at most `lag_frames` frames later) and the final state
+(`finish`). The orchestrator merges every keyframe into the plane-object map first, so
+landmark ids are the map's plane and corner ids: the map supplies data association, and
+it stays the one owner of plane state (the backend only sends it estimates).
+
+Two implementations: `merge.MergeBackend` (the paper's Section 4.4: the map merge is the
+whole backend, every tracked frame a keyframe, nothing revised) and `worker.Isam2Worker`
+(the iSAM2 factor graph of `isam2.Isam2Backend`, in a child process beside tracking).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from planeslam.backend.config import BackendConfig
+from planeslam.core.errors import ConfigError
+from planeslam.core.types import FrameMeasurements, PlaneEstimate
+
+
+class BackendKind(str, enum.Enum):
+    """The backends `create_backend` builds."""
+
+    ISAM2 = "isam2"
+    MERGE = "merge"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+@dataclass(frozen=True)
+class KeyframeInput:
+    """One keyframe handed to a backend."""
+
+    index: int
+    """Frame index, strictly increasing over the keyframes."""
+    timestamp: float
+    """[s]"""
+    T_world_cam: np.ndarray
+    """(4, 4) pose from tracking (initialises new landmarks too)."""
+    measurements: FrameMeasurements
+    plane_ids: dict[int, int]
+    """Observed plane id -> landmark (map plane) id."""
+    corner_ids: dict[int, int]
+    """Index in `measurements.corners` -> landmark (map corner) id."""
+    T_prev_cam: np.ndarray | None
+    """(4, 4) measured pose in the previous keyframe's camera frame; None for the first."""
+
+
+@dataclass(frozen=True)
+class KeyframeUpdate:
+    """What the backend made of one keyframe."""
+
+    index: int
+    """Frame index of the keyframe."""
+    T_world_cam: np.ndarray
+    """(4, 4) its pose after its own update."""
+    planes: dict[int, PlaneEstimate]
+    """Plane landmark id -> estimate after the update, for the planes this keyframe saw."""
+    corners: dict[int, np.ndarray]
+    """Corner landmark id -> p_world (3,) [m] after the update, for its corners."""
+    update_ms: float
+    """Wall-clock ms of the backend's work for this keyframe."""
+
+
+@dataclass(frozen=True)
+class BackendResult:
+    """A backend's final state (after the batch optimisation of `finish`, if any)."""
+
+    keyframe_poses: dict[int, np.ndarray]
+    """Keyframe index -> final T_world_cam (4, 4)."""
+    planes: dict[int, PlaneEstimate] = field(default_factory=dict)
+    """Plane landmark id -> final estimate (empty: the map's planes stand)."""
+    corners: dict[int, np.ndarray] = field(default_factory=dict)
+    """Corner landmark id -> final p_world (3,) [m]."""
+    update_ms: list[float] = field(default_factory=list)
+    """Per keyframe, as in `KeyframeUpdate.update_ms`."""
+    batch_ms: float = 0.0
+    """Wall-clock ms of the final batch optimisation."""
+    failures: int = 0
+    """Indeterminate updates caught and handled."""
+    num_factors: int = 0
+    """Factors in the graph (0 without one)."""
+
+
+class Backend(Protocol):
+    """What the orchestrator needs of a backend."""
+
+    kind: BackendKind
+    lag_frames: int
+    """A keyframe's update is collected before tracking the frame this many frames after
+    it (or at the next keyframe, if sooner); 0: at once."""
+    objects_every_keyframe: bool
+    """Whether the map re-aggregates its objects at every merge (otherwise at `finish`)."""
+
+    def is_keyframe(
+        self, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
+    ) -> bool:
+        """Whether a mapped frame at T_now (4, 4) becomes a keyframe after the last one."""
+        ...
+
+    def submit(self, keyframe: KeyframeInput) -> None:
+        """Hand a keyframe over without waiting for its update."""
+        ...
+
+    def collect(self) -> KeyframeUpdate:
+        """The update of the oldest keyframe not collected yet (waits for it)."""
+        ...
+
+    def finish(self) -> BackendResult:
+        """Final optimisation and state; the backend then takes no more keyframes."""
+        ...
+
+    def close(self) -> None:
+        """Stop without optimising, dropping pending work (idempotent, prompt)."""
+        ...
+
+
+def create_backend(kind: BackendKind | str, config: BackendConfig) -> Backend:
+    """The backend `kind` ('isam2' or 'merge') with its config section."""
+    try:
+        kind = BackendKind(kind)
+    except ValueError:
+        valid = ", ".join(k.value for k in BackendKind)
+        raise ConfigError(f"backend {kind!r} unknown; expected one of {valid}") from None
+    if kind is BackendKind.MERGE:
+        from planeslam.backend.merge import MergeBackend
+
+        return MergeBackend()
+    from planeslam.backend.worker import Isam2Worker
+
+    return Isam2Worker(config, inline=not config.run_in_process)

@@ -1,0 +1,205 @@
+"""What both segmentation methods share: the camera's pixel geometry (cached per camera),
+empty results and their reasons, and the plane record built from a plane's inliers
+(refit, covariance, area, outline).
+
+`Plane.area_m2` is the sum of per-pixel footprints on the plane,
+z^2 / (fx fy |n . r|) = z^3 / (fx fy d) per inlier (r the pixel's z=1 ray).
+`Plane.outline` is the outer contour of the largest connected piece of the
+plane's pixel mask, traced on every 3rd pixel (cv2.findContours + cv2.approxPolyDP with
+`outline_epsilon_px`), its vertices' rays intersected with the plane.
+`Plane.covariance` comes from the least-squares fit (see `plane_fit`), in the
+tangent basis of `plane_fit.tangent_basis` (= gtsam.Unit3(n).basis()).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.errors import ConfigError, GeometryError
+from planeslam.core.plane_fit import moments_of_columns, plane_covariance, plane_from_moments
+from planeslam.frontend.types import Plane, Segmentation
+
+log = logging.getLogger(__name__)
+
+OUTLINE_STRIDE = 3
+"""Outlines are traced on every 3rd pixel of every 3rd row (full-image pixels)."""
+
+
+@dataclass(frozen=True, eq=False)
+class PixelGrid:
+    """Pixel rays of one camera and what the segmenters derive from them."""
+
+    height: int
+    width: int
+    rays: np.ndarray  # (H, W, 3) float64 z=1 rays
+    rays32: np.ndarray  # (H, W, 3) float32 z=1 rays (back-projection)
+    fx: float
+    fy: float
+
+
+_GRID_CACHE: dict[tuple, tuple[object, PixelGrid]] = {}
+
+
+def pixel_grid(camera_or_rays: CameraConfig | PixelRays) -> PixelGrid:
+    """The cached `PixelGrid` of a camera (or of a PixelRays object)."""
+    if isinstance(camera_or_rays, CameraConfig):
+        key: tuple = ("camera", camera_or_rays)
+    elif isinstance(camera_or_rays, PixelRays):
+        key = ("rays", id(camera_or_rays))
+    else:
+        raise ConfigError(
+            f"segment_planes needs a CameraConfig or PixelRays, got {type(camera_or_rays).__name__}"
+        )
+    hit = _GRID_CACHE.get(key)
+    if hit is not None and (key[0] == "camera" or hit[0] is camera_or_rays):
+        return hit[1]
+    if isinstance(camera_or_rays, CameraConfig):
+        rays = PixelRays.for_camera(camera_or_rays).rays
+        fx, fy = float(camera_or_rays.fx), float(camera_or_rays.fy)
+    else:
+        rays = np.asarray(camera_or_rays.rays, dtype=np.float64)
+        if rays.ndim != 3 or rays.shape[2] != 3 or min(rays.shape[:2]) < 2:
+            raise GeometryError(f"PixelRays.rays must be (H, W, 3), got shape {rays.shape}")
+        fx = 1.0 / float(np.median(np.diff(rays[:, :, 0], axis=1)))
+        fy = 1.0 / float(np.median(np.diff(rays[:, :, 1], axis=0)))
+    height, width = rays.shape[:2]
+    grid = PixelGrid(
+        height=height,
+        width=width,
+        rays=rays,
+        rays32=np.ascontiguousarray(rays, dtype=np.float32),
+        fx=fx,
+        fy=fy,
+    )
+    if len(_GRID_CACHE) >= 8:
+        _GRID_CACHE.clear()
+    _GRID_CACHE[key] = (camera_or_rays, grid)  # holding the object keeps its id unique
+    return grid
+
+
+def checked_cloud(cloud: np.ndarray, grid: PixelGrid) -> np.ndarray:
+    """The (H, W, 3) float32 organised cloud, or GeometryError when it does not fit the camera."""
+    if np.shape(cloud) != (grid.height, grid.width, 3):
+        raise GeometryError(
+            f"organised cloud has shape {tuple(np.shape(cloud))}, expected "
+            f"({grid.height}, {grid.width}, 3) for this camera: use cloud.organized_cloud"
+        )
+    return np.asarray(cloud, dtype=np.float32)
+
+
+def empty_segmentation(height: int, width: int, reason: str) -> Segmentation:
+    """No planes, all (H, W) labels -1, and why."""
+    log.debug("segmentation empty: %s", reason)
+    return Segmentation(
+        planes=[], labels=np.full((height, width), -1, dtype=np.int32), reason=reason
+    )
+
+
+def no_valid_reason(depth: np.ndarray | None, max_depth_m: float) -> str:
+    """Why a frame has no valid depth, from its depth image when known."""
+    if depth is None:
+        return f"no valid depth: no point with 0 < z <= max_depth_m={max_depth_m} m"
+    depth = np.asarray(depth, dtype=np.float32)
+    finite = np.isfinite(depth)
+    if not finite.any():
+        return "no valid depth: every pixel is NaN or infinite"
+    if not (depth[finite] > 0).any():
+        return "no valid depth: every finite pixel is <= 0"
+    return f"no valid depth: every positive pixel is beyond max_depth_m={max_depth_m} m"
+
+
+def finish(planes: list[Plane], labels_img: np.ndarray) -> Segmentation:
+    """Renumber if a degenerate plane was skipped (ids stay 0..N-1 by decreasing size)."""
+    if all(p.id == i for i, p in enumerate(planes)):
+        return Segmentation(planes=planes, labels=labels_img)
+    remap = np.full(int(labels_img.max()) + 2, -1, dtype=np.int32)
+    fixed = []
+    for i, p in enumerate(planes):
+        remap[p.id + 1] = i
+        fixed.append(Plane(**{**p.__dict__, "id": i}))
+    return Segmentation(planes=fixed, labels=remap[labels_img + 1])
+
+
+def build_plane(
+    plane_id: int,
+    xyz: np.ndarray,
+    labels_small: np.ndarray,
+    box: tuple[slice, slice] | None,
+    grid: PixelGrid,
+    outline_epsilon_px: float,
+    outline_stride: int = OUTLINE_STRIDE,
+) -> Plane | None:
+    """Refit a plane on its inliers `xyz` (3, K) float64 (rows contiguous) and derive
+    covariance, area, outline; `Plane.points` is the (K, 3) transposed view of `xyz`.
+
+    `labels_small` is the label image strided by `outline_stride`, `box` the
+    (rows, cols) slices bounding the plane in it (None: not in it). None when the
+    points are degenerate (collinear)."""
+    try:
+        count, centroid, scatter = moments_of_columns(xyz[0], xyz[1], xyz[2])
+        normal, d, rss = plane_from_moments(centroid, scatter)
+        covariance = plane_covariance(normal, centroid, scatter, count, rss)
+        outline = _outline(
+            plane_id, normal, d, labels_small, box, grid, outline_epsilon_px, outline_stride
+        )
+    except GeometryError as exc:
+        log.debug("plane %d skipped: %s", plane_id, exc)
+        return None
+    z = xyz[2]
+    area = float((z * z) @ z) / (grid.fx * grid.fy * d)
+    return Plane(
+        id=plane_id,
+        normal=normal,
+        d=d,
+        points=xyz.T,
+        centroid=centroid,
+        covariance=covariance,
+        scatter=scatter,
+        num_points=count,
+        area_m2=area,
+        outline=outline,
+    )
+
+
+def _outline(
+    plane_id: int,
+    normal: np.ndarray,
+    d: float,
+    labels_small: np.ndarray,
+    box: tuple[slice, slice] | None,
+    grid: PixelGrid,
+    epsilon_px: float,
+    stride: int,
+) -> np.ndarray:
+    """(M, 3) outline on the plane: outer contour of the largest piece of its mask.
+
+    The contour is traced on every `stride`-th pixel of every such row
+    (`labels_small`): cheap, and finer than the polygon tolerance
+    `epsilon_px` needs. `box`: (rows, cols) slices of `labels_small`."""
+    s = stride
+    if box is None:
+        raise GeometryError(f"plane {plane_id} has no pixel on the outline grid")
+    v0, u0 = box[0].start, box[1].start
+    mask = (labels_small[box] == plane_id).view(np.uint8)
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    if not contours:
+        raise GeometryError(f"plane {plane_id} has no pixels in its bounding box {box}")
+    contour = max(contours, key=cv2.contourArea)
+    poly = cv2.approxPolyDP(contour, epsilon_px / s, True)
+    poly = poly.reshape(-1, 2)
+    if len(poly) < 3:
+        poly = np.round(cv2.boxPoints(cv2.minAreaRect(contour))).astype(np.int64)
+    u, v = poly[:, 0] + u0, poly[:, 1] + v0
+    # A region on the last sampled row / column reaches the image border.
+    last_v, last_u = labels_small.shape[0] - 1, labels_small.shape[1] - 1
+    u = np.where(u == last_u, grid.width - 1, np.clip(s * u, 0, grid.width - 1))
+    v = np.where(v == last_v, grid.height - 1, np.clip(s * v, 0, grid.height - 1))
+    rays = grid.rays[v, u]
+    along = rays @ normal
+    along = np.where(np.abs(along) > 1e-9, along, -1e-9)
+    return rays * (-d / along)[:, None]

@@ -1,0 +1,57 @@
+"""What the map holds, world frame: its records, id counters, up vector and sparse cloud,
+with the configs they were made under. The mutable state every map operation works on."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planeslam.core.errors import MapError
+from planeslam.frontend.config import ObjectConfig
+from planeslam.mapping.config import MapConfig
+from planeslam.mapping.gravity import UpSource
+from planeslam.mapping.records import MapCorner, MapEdge, MapObject, MapPlane
+from planeslam.mapping.sparse_cloud import SparseCloud
+
+
+@dataclass(eq=False)
+class MapContents:
+    """The map's state. Dicts keep insertion order, which is increasing id order: ids are
+    monotonic and never reused (also across a save/load)."""
+
+    config: MapConfig
+    object_config: ObjectConfig
+    """Orientation tolerance, corner and size parameters of re-aggregation (its gravity
+    keys are unused: the map's up is `up`)."""
+    planes: dict[int, MapPlane] = field(default_factory=dict)
+    edges: dict[tuple[int, int], MapEdge] = field(default_factory=dict)
+    """Keyed by the two plane ids, smaller first."""
+    corners: dict[int, MapCorner] = field(default_factory=dict)
+    objects: list[MapObject] = field(default_factory=list)
+    """Of the last re-aggregation; ids 0..K-1."""
+    next_plane_id: int = 0
+    next_corner_id: int = 0
+    up: np.ndarray | None = None
+    """(3,) unit world up vector, None before it is known."""
+    up_source: UpSource = field(default_factory=UpSource)
+    cloud: SparseCloud = field(init=False)
+    frames_merged: int = 0
+
+    def __post_init__(self) -> None:
+        self.cloud = SparseCloud(self.config.voxel_m, self.config.sparse_max_points)
+
+    def plane(self, plane_id: int) -> MapPlane:
+        """The plane with that id; MapError when there is none."""
+        try:
+            return self.planes[int(plane_id)]
+        except KeyError:
+            raise MapError(f"no map plane with id {plane_id}") from None
+
+    def new_plane_id(self) -> int:
+        self.next_plane_id += 1
+        return self.next_plane_id - 1
+
+    def new_corner_id(self) -> int:
+        self.next_corner_id += 1
+        return self.next_corner_id - 1

@@ -1,0 +1,116 @@
+"""The map's sparse cloud for what is not planar: one running-mean point and colour per
+voxel, world frame, capped to the best-supported voxels."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from planeslam.core.errors import MapError
+
+logger = logging.getLogger(__name__)
+
+GREY = np.array([160, 160, 160], dtype=np.uint8)
+"""Colour of points given without one (and of map planes in no object)."""
+
+_KEY_BITS = 21
+"""Bits per axis of a packed voxel key: +-2^20 voxels (+-52 km at 5 cm)."""
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+class SparseCloud:
+    """Voxel-averaged points: integer voxel keys (V, 3), mean points (V, 3) [m], point
+    counts (V,) and mean uint8 colours (V, 3), rows in increasing packed-key order."""
+
+    def __init__(self, voxel_m: float, max_points: int) -> None:
+        """`voxel_m`: voxel edge [m]; `max_points`: most voxels kept."""
+        self.voxel_m = voxel_m
+        self.max_points = max_points
+        self.keys = np.zeros((0, 3), dtype=np.int64)
+        self.points = np.zeros((0, 3))
+        self.counts = np.zeros(0, dtype=np.int64)
+        self.colors = np.zeros((0, 3), dtype=np.uint8)
+
+    @classmethod
+    def from_arrays(
+        cls,
+        voxel_m: float,
+        max_points: int,
+        keys: np.ndarray,
+        points: np.ndarray,
+        counts: np.ndarray,
+        colors: np.ndarray,
+    ) -> SparseCloud:
+        """A cloud with the given rows (as `add` leaves them); MapError when their
+        lengths differ."""
+        if not len(keys) == len(points) == len(counts) == len(colors):
+            raise MapError("sparse_cloud arrays differ in length")
+        cloud = cls(voxel_m, max_points)
+        cloud.keys, cloud.points, cloud.counts, cloud.colors = keys, points, counts, colors
+        return cloud
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the four arrays."""
+        return self.keys.nbytes + self.points.nbytes + self.counts.nbytes + self.colors.nbytes
+
+    def add(self, points_world: np.ndarray, colors: np.ndarray | None = None) -> None:
+        """Add (N, 3) world points [m] (and (N, 3) uint8 colours, grey when None).
+
+        Non-finite rows are dropped. Beyond `max_points` voxels the least-supported
+        ones go (ties: the later voxel in key order). MapError for bad shapes or points
+        too far out to voxelise.
+        """
+        pts = np.asarray(points_world, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise MapError(f"points_world has shape {pts.shape}, expected (N, 3)")
+        if colors is None:
+            cols = np.broadcast_to(GREY, pts.shape)
+        else:
+            cols = np.asarray(colors)
+            if cols.shape != pts.shape:
+                raise MapError(f"colors has shape {cols.shape}, expected {pts.shape} uint8")
+        finite = np.all(np.isfinite(pts), axis=1)
+        pts, cols = pts[finite], cols[finite].astype(np.float64)
+        if len(pts) == 0:
+            return
+        keys = np.floor(pts / self.voxel_m).astype(np.int64)
+        if np.abs(keys).max() >= _KEY_OFFSET:
+            raise MapError(
+                f"points beyond +-{_KEY_OFFSET * self.voxel_m:.0f} m cannot be voxelised"
+            )
+        n_old = len(self.keys)
+        all_keys = np.concatenate([self.keys, keys])
+        uniq, first, inv = np.unique(_pack(all_keys), return_index=True, return_inverse=True)
+        w = np.concatenate([self.counts.astype(np.float64), np.ones(len(pts))])
+        sums = np.concatenate([self.points * w[:n_old, None], pts])
+        csums = np.concatenate([self.colors.astype(np.float64) * w[:n_old, None], cols])
+        counts = np.bincount(inv, weights=w, minlength=len(uniq))
+        mean = _sum_by(inv, sums, len(uniq)) / counts[:, None]
+        cmean = _sum_by(inv, csums, len(uniq)) / counts[:, None]
+        keep = np.arange(len(uniq))
+        if len(uniq) > self.max_points:
+            order = np.argsort(-counts, kind="stable")
+            keep = np.sort(order[: self.max_points])
+            logger.debug("sparse cloud capped: %d of %d voxels kept", self.max_points, len(uniq))
+        self.keys = all_keys[first[keep]]
+        self.points = mean[keep]
+        self.counts = np.rint(counts[keep]).astype(np.int64)
+        self.colors = np.clip(np.rint(cmean[keep]), 0, 255).astype(np.uint8)
+
+
+def _pack(keys: np.ndarray) -> np.ndarray:
+    """(N,) int64 of (N, 3) voxel keys, ordered like the keys lexicographically."""
+    k = keys + _KEY_OFFSET
+    return (k[:, 0] << (2 * _KEY_BITS)) | (k[:, 1] << _KEY_BITS) | k[:, 2]
+
+
+def _sum_by(inv: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
+    """(groups, 3) sums of the (N, 3) `values` rows by group index `inv` (N,)."""
+    return np.stack(
+        [np.bincount(inv, weights=values[:, i], minlength=groups) for i in range(3)], axis=1
+    )
