@@ -103,6 +103,10 @@ def load_config(name_or_path: str | Path | None = None) -> PlaneSlamConfig:
         return PlaneSlamConfig()
     text = str(name_or_path)
     path = preset_path(text) if text in PRESETS else Path(text)
+    if not path.is_file():
+        raise ConfigError(
+            f"config {text!r}: neither a preset ({', '.join(PRESETS)}) nor a YAML file"
+        )
     return from_mapping(PlaneSlamConfig, read_yaml(path), str(path))
 
 

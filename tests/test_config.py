@@ -103,8 +103,10 @@ def test_unreadable_yaml_names_the_file(tmp_path: Path) -> None:
     path.write_text("camera: {fx: [1, 2\n")
     with pytest.raises(ConfigError, match="broken.yaml: not a readable YAML file"):
         load_config(path)
-    with pytest.raises(ConfigError, match="config file not found"):
+    with pytest.raises(ConfigError, match=r"missing.yaml': neither a preset \(defaults, tum_fr1"):
         load_config(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="'tum_fr9': neither a preset"):
+        load_config("tum_fr9")
 
 
 def test_saved_config_loads_back_equal(tmp_path: Path) -> None:

@@ -354,6 +354,7 @@ def bench_frontend(
     dataset_dir: str | Path | None = None,
     frames: int = 30,
     config: str | Path | None = None,
+    camera: str | None = None,
     cores: int | None = 1,
     progress: bool = False,
     reference_frames: int = 3,
@@ -374,7 +375,7 @@ def bench_frontend(
         raise ConfigError(f"bench: reference_frames must be >= 0, got {reference_frames}")
     cache = None if cache_dir is None else Path(cache_dir)
     folder = Path(dataset_dir) if dataset_dir is not None else synthetic_dataset(cache)
-    cfg = resolve_config(folder, config)
+    cfg = resolve_config(folder, config, camera)
     dataset = TumDataset(folder, cfg.camera, cfg.dataset)
     if len(dataset) == 0:
         raise DatasetFormatError(f"{folder}: no frames")

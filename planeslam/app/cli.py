@@ -12,16 +12,46 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from planeslam import __version__
 from planeslam.core.errors import PlaneSlamError
 from planeslam.core.native_tuning import keep_freed_memory
 
 log = logging.getLogger("planeslam")
 
 
+def _common_options(defaults: bool) -> argparse.ArgumentParser:
+    """-v / -q, accepted before and after the sub-command (after it, an absent flag leaves
+    what was given before it)."""
+    p = argparse.ArgumentParser(add_help=False)
+    unset = {} if defaults else {"default": argparse.SUPPRESS}
+    p.add_argument(
+        "-v", "--verbose", action="count", help="more log output", **({"default": 0} | unset)
+    )
+    p.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="only warnings and errors, no progress bars",
+        **unset,
+    )
+    return p
+
+
+_SUBCOMMAND_OPTIONS = _common_options(defaults=False)
+
+
+def _command(
+    sub: argparse._SubParsersAction, name: str, **kwargs: object
+) -> argparse.ArgumentParser:
+    """A sub-command parser that also takes the global -v / -q."""
+    return sub.add_parser(name, parents=[_SUBCOMMAND_OPTIONS], **kwargs)  # type: ignore[arg-type]
+
+
 def _add_synth(sub: argparse._SubParsersAction) -> None:
     from planeslam.sim.render import SCENES
 
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "synth",
         help="render a synthetic RGB-D sequence with exact truth",
         description="Render a synthetic RGB-D sequence in the TUM layout, with camera.yaml "
@@ -43,7 +73,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "demo",
         help="render the built-in synthetic scene and run planeslam on it",
         description="Render the built-in synthetic scene (the paper's box in a room, seen "
@@ -64,7 +95,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _add_eval(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "eval",
         help="ATE and RPE of a TUM trajectory against ground truth (via evo)",
         description="Absolute trajectory error (translation RMSE, mean, median, max after SE(3) "
@@ -111,7 +143,8 @@ def _add_dataset_options(p: argparse.ArgumentParser) -> None:
 def _add_run(sub: argparse._SubParsersAction) -> None:
     from planeslam.slam import BACKENDS
 
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "run",
         help="full SLAM on a TUM-layout sequence (trajectory, map, metrics, evaluation)",
         description="Run SLAM on a dataset folder (TUM layout). Writes trajectory.txt (row by "
@@ -146,7 +179,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         args.backend,
         args.max_frames,
         args.every,
-        progress=True,
+        progress=not args.quiet,
         seed=args.seed,
     )
     print(result.text())
@@ -154,7 +187,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _add_frame(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser(
+    p = _command(
+        sub,
         "frame",
         help="the front end on one frame: frame.json and overlay.png",
         description="Run the per-frame front end (planes, real intersections, plane graph, "
@@ -178,9 +212,10 @@ def _cmd_frame(args: argparse.Namespace) -> int:
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="benchmarks: the front end's speed, or a suite of runs")
+    p = _command(sub, "bench", help="benchmarks: the front end's speed, or a suite of runs")
     bench = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    f = bench.add_parser(
+    f = _command(
+        bench,
         "frontend",
         help="per-stage speed of the front end on one core, with Open3D segment_plane",
         description="Per-stage median milliseconds per frame and frames per second of the "
@@ -190,7 +225,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     f.add_argument("dataset", type=Path, nargs="?", default=None, help="dataset folder")
     f.add_argument("--frames", type=int, default=30, help="frames to time (default 30)")
-    f.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
+    _add_dataset_options(f)
     f.add_argument(
         "--reference-frames",
         type=int,
@@ -199,7 +234,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     f.add_argument("--json", action="store_true", help="print one JSON object")
     f.set_defaults(func=_cmd_bench_frontend)
-    s = bench.add_parser(
+    s = _command(
+        bench,
         "suite",
         help="run methods on sequences; one table (markdown + CSV)",
         description="Run every method of a suite on every sequence (one at a time by "
@@ -227,7 +263,8 @@ def _cmd_bench_frontend(args: argparse.Namespace) -> int:
         args.dataset,
         frames=args.frames,
         config=args.config,
-        progress=not args.json and sys.stderr.isatty(),
+        camera=args.camera,
+        progress=not (args.json or args.quiet) and sys.stderr.isatty(),
         reference_frames=args.reference_frames,
     )
     print(json.dumps(result.to_dict(), indent=2) if args.json else result.to_text())
@@ -237,7 +274,7 @@ def _cmd_bench_frontend(args: argparse.Namespace) -> int:
 def _cmd_bench_suite(args: argparse.Namespace) -> int:
     from planeslam.app.suite import run_suite_command
 
-    table = run_suite_command(args.suite, args.out, jobs=args.jobs, progress=True)
+    table = run_suite_command(args.suite, args.out, jobs=args.jobs, progress=not args.quiet)
     print(table)
     return 0
 
@@ -257,9 +294,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="planeslam",
         description="RGB-D SLAM with a plane-object map (planes, real intersections, "
         "trihedral corners, classified objects with sizes) and a GTSAM backend.",
+        parents=[_common_options(defaults=True)],
     )
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
-    parser.add_argument("-q", "--quiet", action="store_true", help="only warnings and errors")
+    parser.add_argument("--version", action="version", version=f"planeslam {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for add in COMMANDS:
         add(sub)
