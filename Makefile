@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= out/demo
 
-.PHONY: setup demo test test-fast lint bench clean
+.PHONY: setup demo test test-fast lint bench soak clean
 
 setup: $(STAMP)
 
@@ -33,12 +33,17 @@ test-fast: $(STAMP)
 	$(BIN)/python -m pytest -q -m "unit and not slow"
 
 lint: $(STAMP)
-	$(BIN)/ruff check planeslam factors eval tests
-	$(BIN)/ruff format --check planeslam factors eval tests
-	$(BIN)/mypy planeslam factors eval
+	$(BIN)/ruff check planeslam factors eval tests examples
+	$(BIN)/ruff format --check planeslam factors eval tests examples
+	$(BIN)/mypy planeslam factors eval examples
 
 bench: $(STAMP)
 	$(BIN)/planeslam bench frontend
+
+# Many short runs with random faults (in-process and through the CLI), then a check that
+# child processes, open files and memory are back where they started (a few minutes).
+soak: $(STAMP)
+	$(BIN)/python -m tests.soak
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planeslam.core.errors import EvaluationError
-from planeslam.io.dataset import TumDataset
+from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import Trajectory
 from planeslam.tracking.odometry import RgbdOdometry
 
@@ -34,7 +34,7 @@ class BaselineResult:
 
 
 def run_open3d_odometry(
-    dataset: TumDataset,
+    dataset: RgbdDataset,
     max_frames: int | None = None,
     every: int = 1,
     on_pose: Callable[[float, np.ndarray], None] | None = None,

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import resource
-import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -14,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planeslam.core.errors import EvaluationError
+from planeslam.core.resources import peak_rss_mb
 
 if TYPE_CHECKING:
     from planeslam.slam import SLAM, RunSummary
@@ -34,15 +33,30 @@ class RunMetrics:
     stage_ms: dict[str, float] = field(default_factory=dict)
     """Stage name -> median time per frame [ms]."""
     peak_rss_mb: float = 0.0
-    """Peak resident set size of the process [MiB]."""
+    """Peak resident set size of this (the main) process [MiB]."""
+    backend_peak_rss_mb: float = 0.0
+    """Peak resident set size of the backend's process [MiB] (0 when it runs inline)."""
     map_bytes: int = 0
-    """Size of the serialised high-level map [bytes]."""
-    pointcloud_bytes: int = 0
-    """Size of the point cloud the map stands in for [bytes]."""
+    """Size of the high-level map as held in memory [bytes]."""
+    fused_cloud_bytes: int = 0
+    """Size of the point-cloud map the plane map stands in for: the frames' points fused
+    with the estimated poses and voxel-downsampled at 1 cm, `point_bytes` per point."""
     memory_ratio: float | None = None
-    """pointcloud_bytes / map_bytes (the paper's 'about 60x less memory'); None without a map."""
+    """fused_cloud_bytes / map_bytes, the headline; None without a map."""
+    pointcloud_bytes: int = 0
+    """All processed frames' clouds merged, `point_bytes` per valid pixel (the paper's
+    comparison; it grows with the number of frames)."""
+    memory_ratio_merged: float | None = None
+    """pointcloud_bytes / map_bytes, the paper's 'about 60x less memory'."""
+    point_bytes: int = 15
+    """Bytes per point of both clouds: float32 x, y, z and uint8 r, g, b."""
+    map_counts: dict[str, int] = field(default_factory=dict)
+    """Planes, edges, corners and objects in the map at the end."""
     lost_frames: int = 0
     """Frames whose pose could not be estimated (tracking lost, registration failed)."""
+    tracked_fraction: float | None = None
+    """Frames with a pose (in trajectory.txt) / frames processed; None when not known (a
+    method that does not say). ATE is computed over the tracked frames only."""
     keyframes: int = 0
     """Frames that went into the map / the backend's graph (0 for methods without a map)."""
     tracking_paths: dict[str, int] = field(default_factory=dict)
@@ -56,14 +70,6 @@ class RunMetrics:
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
-
-
-def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far [MiB] (getrusage; kB on Linux,
-    bytes on macOS)."""
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    per_mb = 1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0
-    return float(peak) / per_mb
 
 
 def stage_medians(frame_timings: Sequence[Mapping[str, float]]) -> dict[str, float]:
@@ -92,11 +98,15 @@ def run_metrics(
     frame_ms: Sequence[float] | None = None,
     map_bytes: int = 0,
     pointcloud_bytes: int = 0,
+    fused_cloud_bytes: int = 0,
     lost_frames: int = 0,
     keyframes: int = 0,
     tracking_paths: Mapping[str, int] | None = None,
     map_bytes_breakdown: Mapping[str, int] | None = None,
     backend: Mapping[str, float] | None = None,
+    backend_peak_rss_mb: float = 0.0,
+    map_counts: Mapping[str, int] | None = None,
+    tracked_fraction: float | None = None,
 ) -> RunMetrics:
     """Build RunMetrics from a run's counts and timings.
 
@@ -118,10 +128,15 @@ def run_metrics(
         frame_ms_median=median_ms,
         stage_ms=stage_medians(frame_timings),
         peak_rss_mb=peak_rss_mb(),
+        backend_peak_rss_mb=float(backend_peak_rss_mb),
         map_bytes=int(map_bytes),
+        fused_cloud_bytes=int(fused_cloud_bytes),
+        memory_ratio=memory_ratio(map_bytes, fused_cloud_bytes),
         pointcloud_bytes=int(pointcloud_bytes),
-        memory_ratio=memory_ratio(map_bytes, pointcloud_bytes),
+        memory_ratio_merged=memory_ratio(map_bytes, pointcloud_bytes),
+        map_counts=dict(map_counts or {}),
         lost_frames=int(lost_frames),
+        tracked_fraction=None if tracked_fraction is None else float(tracked_fraction),
         keyframes=int(keyframes),
         tracking_paths=dict(tracking_paths or {}),
         map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
@@ -132,28 +147,34 @@ def run_metrics(
 def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
     """RunMetrics of a `planeslam.slam.SLAM` run: speed and paths from its `RunSummary`
     (None for an interrupted run: frame count only), the map's bytes by part against the
-    point cloud of the processed frames."""
+    fused and the merged point clouds of the processed frames."""
     breakdown = slam.map.memory_bytes()
-    parts = {k: v for k, v in breakdown.items() if k != "total"}
+    result = slam.backend_result
+    common: dict[str, Any] = dict(
+        map_bytes=breakdown["total"],
+        pointcloud_bytes=slam.pointcloud_bytes,
+        fused_cloud_bytes=slam.fused_cloud_bytes,
+        map_bytes_breakdown={k: v for k, v in breakdown.items() if k != "total"},
+        map_counts={
+            "planes": len(slam.map.planes),
+            "edges": len(slam.map.edges),
+            "corners": len(slam.map.corners),
+            "objects": len(slam.map.objects),
+        },
+        backend_peak_rss_mb=result.peak_rss_mb if result is not None else 0.0,
+        tracked_fraction=slam.tracked_frames / slam.frames if slam.frames else None,
+    )
     if summary is None:
-        return run_metrics(
-            frames=slam.frames,
-            seconds=0.0,
-            map_bytes=breakdown["total"],
-            pointcloud_bytes=slam.pointcloud_bytes,
-            map_bytes_breakdown=parts,
-        )
+        return run_metrics(frames=slam.frames, seconds=0.0, **common)
     return run_metrics(
         frames=summary.frames,
         seconds=summary.seconds,
         frame_timings=summary.frame_timings,
-        map_bytes=breakdown["total"],
-        pointcloud_bytes=slam.pointcloud_bytes,
-        lost_frames=summary.lost_frames,
+        lost_frames=slam.frames - slam.tracked_frames,  # segments joined later count
         keyframes=summary.keyframes,
         tracking_paths=summary.paths,
-        map_bytes_breakdown=parts,
         backend=_backend_figures(slam),
+        **common,
     )
 
 

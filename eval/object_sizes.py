@@ -39,7 +39,10 @@ def _size_cost(est: np.ndarray, true: np.ndarray) -> float:
 
 
 def object_size_errors(
-    estimated_objects: Sequence[Mapping[str, Any]], truth: Mapping[str, Any]
+    estimated_objects: Sequence[Mapping[str, Any]],
+    truth: Mapping[str, Any],
+    truth_source: str = "truth",
+    map_source: str = "estimated map",
 ) -> list[dict[str, Any]]:
     """Size error of each true object against its matched estimated object [m].
 
@@ -50,12 +53,13 @@ def object_size_errors(
     Returns one dict per true object, in truth order: class, true_id, estimated_id,
     true_size_m, estimated_size_m, abs_error_m (per common dimension), mean_abs_error_m;
     a true object with no estimate of its class has None for the estimated fields.
+    EvaluationError naming `truth_source` / `map_source` for malformed content.
     """
     if not isinstance(truth, Mapping) or not isinstance(truth.get("objects"), list):
-        raise EvaluationError("truth: expected a mapping with an 'objects' list")
+        raise EvaluationError(f"{truth_source}: expected a mapping with an 'objects' list")
     true_objs = list(truth["objects"])
-    true_sizes = [_sizes(o, "truth") for o in true_objs]
-    est_sizes = [_sizes(o, "estimated map") for o in estimated_objects]
+    true_sizes = [_sizes(o, truth_source) for o in true_objs]
+    est_sizes = [_sizes(o, map_source) for o in estimated_objects]
     matches: dict[int, int] = {}
     for cls in sorted({o["class"] for o in true_objs}):
         ti = [i for i, o in enumerate(true_objs) if o["class"] == cls]
@@ -117,4 +121,5 @@ def object_size_errors_from_files(
     objects = map_data.get("objects") if isinstance(map_data, Mapping) else None
     if not isinstance(objects, list):
         raise EvaluationError(f"{map_json}: expected a JSON object with an 'objects' list")
-    return object_size_errors(objects, read_json(Path(truth_json), "truth file"))
+    truth = read_json(Path(truth_json), "truth file")
+    return object_size_errors(objects, truth, str(truth_json), str(map_json))

@@ -1,29 +1,35 @@
-"""Benchmark suite: every (sequence, method) pair in its own worker process, one table.
+"""Benchmark suite: every (sequence, method) pair as one job, one table.
 
-A suite YAML lists sequences (dataset folders with an optional config preset) and method
-names; each method is looked up in `METHODS` and returns a trajectory and run metrics.
-A run that fails is reported with its one-line error and never stops the others.
+A suite YAML lists sequences (dataset folders or ROS bags with an optional config preset)
+and method names; each method is looked up in `METHODS` and returns a trajectory and run
+metrics. Jobs run in this process, in worker processes, or on a Dask cluster
+(`planeslam.eval.executors`); every row records when its job ran, so the table says how
+many jobs shared the machine. A run that fails is reported with its one-line error and
+never stops the others.
 """
 
 from __future__ import annotations
 
-import concurrent.futures
 import csv
+import dataclasses
 import json
 import logging
-import multiprocessing
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
+
+import numpy as np
 
 from planeslam.config import resolve_config
 from planeslam.core.config import from_mapping, read_yaml
 from planeslam.core.errors import ConfigError, EvaluationError
-from planeslam.io.dataset import TumDataset
+from planeslam.io.sequence import RgbdDataset, open_dataset
 from planeslam.io.trajectory import Trajectory, write_tum
+from planeslam.sim.render import SynthOptions
 
+from .executors import Job, run_here, run_in_processes, run_on_dask
 from .metrics import RunMetrics, run_metrics, slam_run_metrics, write_metrics
 from .object_sizes import mean_object_size_error, object_size_errors
 from .trajectory_metrics import evaluate_trajectory
@@ -36,7 +42,8 @@ class SequenceSpec:
     """One dataset of the suite."""
 
     path: str = ""
-    """Dataset folder (TUM layout); relative paths are relative to the suite file."""
+    """Dataset folder (TUM layout) or ROS bag; relative paths are relative to the suite
+    file."""
     scene: str | None = None
     """Instead of `path`: a synthetic scene (`planeslam synth`), rendered once into the
     suite's output folder (data/<scene>) with seed 0."""
@@ -48,11 +55,16 @@ class SequenceSpec:
     """Use every `every`-th frame (keyframes far apart)."""
     optional: bool = False
     """Skip the sequence (with a note) when its folder does not exist, e.g. shared data."""
+    synth: SynthOptions = field(default_factory=SynthOptions)
+    """With `scene`: how to render it (depth noise model, field of view, camera height,
+    texture; `planeslam.sim.render.SynthOptions`), into data/<scene>_<tag>."""
 
     @property
     def name(self) -> str:
-        """Row label: the folder name (or scene), with '/every<K>' when subsampled."""
+        """Row label: the folder name (or scene, with '/<tag>' of a non-default rendering),
+        with '/every<K>' when subsampled."""
         base = self.scene or Path(self.path).name
+        base = f"{base}/{self.synth.tag}" if self.scene and self.synth.tag else base
         return base if self.every == 1 else f"{base}/every{self.every}"
 
 
@@ -67,7 +79,13 @@ class SuiteConfig:
     jobs: int | None = None
     """Runs at once, in worker processes; default 1, in this process: each run has the
     machine to itself, so its fps mean something (the iSAM2 backend takes the second
-    core). More finish sooner but share the cores."""
+    core). More finish sooner but share the cores. With the dask executor and no
+    scheduler: the LocalCluster's workers (default: one per core)."""
+    executor: Literal["local", "dask"] = "local"
+    """Where jobs run: 'local' (this machine: this process, or `jobs` worker processes) or
+    'dask' (a Dask distributed cluster: `scheduler`, or a LocalCluster on this machine)."""
+    scheduler: str | None = None
+    """Dask scheduler address ('tcp://host:8786'); None: a LocalCluster on this machine."""
     max_time_difference_s: float = 0.02
     """Pose association window of the evaluation [s]."""
     rpe_delta_s: float = 1.0
@@ -86,7 +104,7 @@ class MethodResult:
     """Estimated objects in the map schema, when the method builds objects."""
 
 
-Method = Callable[[TumDataset, SequenceSpec], MethodResult]
+Method = Callable[[RgbdDataset, SequenceSpec], MethodResult]
 METHODS: dict[str, Method] = {}
 """Method name -> callable(dataset, sequence spec) -> MethodResult."""
 
@@ -102,7 +120,7 @@ def register_method(name: str) -> Callable[[Method], Method]:
 
 
 @register_method("open3d_odometry")
-def _open3d_odometry(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
+def _open3d_odometry(dataset: RgbdDataset, spec: SequenceSpec) -> MethodResult:
     from .baselines import run_open3d_odometry
 
     result = run_open3d_odometry(dataset, max_frames=spec.max_frames, every=spec.every)
@@ -116,10 +134,11 @@ def _open3d_odometry(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
 
 
 def _slam_method(backend: str) -> Method:
-    def run(dataset: TumDataset, spec: SequenceSpec) -> MethodResult:
+    def run(dataset: RgbdDataset, spec: SequenceSpec) -> MethodResult:
         from planeslam.slam import frame_indices, run_frames, slam_for_dataset
 
         config = resolve_config(dataset.root, spec.config)
+        config = dataclasses.replace(config, camera=dataset.camera)  # a bag's camera_info
         indices = frame_indices(len(dataset), spec.max_frames, spec.every)
         with slam_for_dataset(config, dataset, indices[0], backend) as slam:
             summary = run_frames(slam, dataset, indices)
@@ -152,15 +171,30 @@ class SuiteRow:
     """Wall-clock time of the whole job, loading and evaluation included [s]."""
     error: str | None = None
     """One-line reason when the run failed."""
+    executor: str | None = None
+    """Where the job ran: 'local' or 'dask'."""
+    jobs_at_once: int | None = None
+    """Most jobs of the suite running at one time while this one ran (itself included)."""
+    started_at: float | None = None
+    """Wall-clock start of the job [s since the epoch, the worker's clock]."""
+    finished_at: float | None = None
+    """Wall-clock end of the job [s since the epoch, the worker's clock]."""
 
 
 @dataclass(frozen=True)
 class SuiteResult:
     rows: list[SuiteRow] = field(default_factory=list)
+    executor: str = "local"
+    """Where the jobs ran: 'local' or 'dask'."""
 
     @property
     def failed(self) -> list[SuiteRow]:
         return [r for r in self.rows if r.error is not None]
+
+    @property
+    def most_jobs_at_once(self) -> int:
+        """Most jobs that ran at one time (1 when they ran one after the other)."""
+        return max((r.jobs_at_once or 1 for r in self.rows), default=1)
 
 
 def load_suite(path: str | Path) -> tuple[SuiteConfig, Path]:
@@ -179,27 +213,30 @@ def load_suite(path: str | Path) -> tuple[SuiteConfig, Path]:
             raise ConfigError(f"{path}: sequences[{k}] needs exactly one of 'path' or 'scene'")
         if spec.every < 1:
             raise ConfigError(f"{path}: sequences[{k}].every must be >= 1, got {spec.every}")
+        if spec.scene is None and spec.synth != SynthOptions():
+            raise ConfigError(f"{path}: sequences[{k}].synth applies to a 'scene' only")
     return config, path.parent
 
 
 def sequence_root(spec: SequenceSpec, base_dir: str | Path, out_dir: str | Path | None) -> Path:
     """The dataset folder of a sequence: its path, or data/<scene> under the output folder."""
     if spec.scene is not None:
-        return Path(out_dir or ".") / "data" / spec.scene
+        tag = spec.synth.tag
+        return Path(out_dir or ".") / "data" / (f"{spec.scene}_{tag}" if tag else spec.scene)
     return Path(base_dir) / spec.path
 
 
 def render_scenes(config: SuiteConfig, out_dir: str | Path) -> None:
     """Render the synthetic scenes of a suite into out_dir/data once (seed 0), before the
     workers start, so that no two workers render the same scene."""
-    from planeslam.sim.render import synthesize
+    from planeslam.sim.render import render_sequence
 
     for spec in config.sequences:
         if spec.scene is not None:
             root = sequence_root(spec, ".", out_dir)
             if not (root / "truth.json").is_file():
                 log.info("rendering %s into %s", spec.scene, root)
-                synthesize(spec.scene, root, seed=0)
+                render_sequence(spec.scene, root, spec.synth, seed=0)
 
 
 def run_job(
@@ -211,11 +248,12 @@ def run_job(
     rpe_delta_s: float,
 ) -> SuiteRow:
     """Run one method on one sequence and evaluate it; any exception becomes `error`."""
+    started_at = time.time()
     start = time.perf_counter()
     root = sequence_root(spec, base_dir, out_dir)
     try:
         cfg = resolve_config(root, spec.config)
-        dataset = TumDataset(root, cfg.camera, cfg.dataset)
+        dataset = open_dataset(root, cfg.camera, cfg.dataset)
         result = METHODS[method](dataset, spec)
         row: dict[str, Any] = {
             "fps": result.metrics.fps,
@@ -228,7 +266,7 @@ def run_job(
             write_tum(run_dir / "trajectory.txt", result.trajectory)
             write_metrics(result.metrics, run_dir / "metrics.json")
         if dataset.groundtruth is None:
-            raise EvaluationError(f"{root}: no groundtruth.txt to evaluate against")
+            raise EvaluationError(f"{root}: no ground truth to evaluate against")
         ev = evaluate_trajectory(
             dataset.groundtruth, result.trajectory, max_time_difference_s, rpe_delta_s
         )
@@ -243,18 +281,37 @@ def run_job(
             row["object_size_error_m"] = mean_object_size_error(
                 object_size_errors(result.objects, truth)
             )
-        return SuiteRow(
-            sequence=spec.name, method=method, seconds=time.perf_counter() - start, **row
-        )
     except Exception as exc:  # noqa: BLE001 - a failing job is reported, the suite goes on
         message = str(exc).splitlines()[0] if str(exc) else ""
         log.warning("%s / %s failed: %s: %s", spec.name, method, type(exc).__name__, message)
-        return SuiteRow(
-            sequence=spec.name,
-            method=method,
-            seconds=time.perf_counter() - start,
-            error=f"{type(exc).__name__}: {message}",
-        )
+        row = {"error": f"{type(exc).__name__}: {message}"}
+    return SuiteRow(
+        sequence=spec.name,
+        method=method,
+        seconds=time.perf_counter() - start,
+        started_at=started_at,
+        finished_at=time.time(),
+        **row,
+    )
+
+
+def jobs_at_once(rows: list[SuiteRow]) -> list[int | None]:
+    """Per row, the most rows whose [started_at, finished_at) overlapped at one instant of
+    its own run (itself included); None for a row without times."""
+    timed = [r for r in rows if r.started_at is not None and r.finished_at is not None]
+    starts = np.array([r.started_at for r in timed], dtype=np.float64)
+    ends = np.array([r.finished_at for r in timed], dtype=np.float64)
+    # The number of running jobs rises only at starts, so it peaks at one: count there.
+    running = ((starts[None, :] <= starts[:, None]) & (ends[None, :] > starts[:, None])).sum(1)
+    result: list[int | None] = []
+    for r in rows:
+        if r.started_at is None or r.finished_at is None:
+            result.append(None)
+            continue
+        inside = (starts >= r.started_at) & (starts < r.finished_at)
+        inside |= starts == r.started_at
+        result.append(int(running[inside].max()))
+    return result
 
 
 def run_suite(
@@ -263,15 +320,19 @@ def run_suite(
     out_dir: str | Path | None = None,
     on_row: Callable[[SuiteRow], None] | None = None,
 ) -> SuiteResult:
-    """Run every (sequence, method) of `config` in worker processes ('spawn', so Open3D and
-    OpenMP start clean in each); rows come back in config order. `on_row` sees each row as it
-    finishes. With jobs == 1 everything runs in this process."""
+    """Run every (sequence, method) of `config` on its executor (`SuiteConfig.executor`);
+    rows come back in config order, each with how many jobs ran at once beside it. `on_row`
+    sees each row as it finishes. The local executor with jobs == 1 runs everything in this
+    process, one job at a time."""
     unknown = [m for m in config.methods if m not in METHODS]
     if unknown:
         raise ConfigError(f"unknown method(s) {', '.join(unknown)}; methods: {', '.join(METHODS)}")
-    jobs = config.jobs or 1
-    if jobs < 1:
-        raise ConfigError(f"jobs must be >= 1, got {jobs}")
+    if config.jobs is not None and config.jobs < 1:
+        raise ConfigError(f"jobs must be >= 1, got {config.jobs}")
+    if config.executor not in ("local", "dask"):
+        raise ConfigError(f"executor must be 'local' or 'dask', got {config.executor!r}")
+    if config.scheduler is not None and config.executor != "dask":
+        raise ConfigError(f"a scheduler ({config.scheduler}) needs the dask executor")
     tasks = [(spec, method) for spec in config.sequences for method in config.methods]
     args = (
         str(base_dir),
@@ -279,35 +340,33 @@ def run_suite(
         config.max_time_difference_s,
         config.rpe_delta_s,
     )
-    rows: list[SuiteRow | None] = [None] * len(tasks)
-    if jobs == 1:
-        for k, (spec, method) in enumerate(tasks):
-            rows[k] = run_job(spec, method, *args)
-            if on_row is not None:
-                on_row(rows[k])  # type: ignore[arg-type]
+    jobs = [Job(run_job, (spec, method, *args)) for spec, method in tasks]
+    if config.executor == "dask":
+        outcomes = run_on_dask(jobs, config.scheduler, config.jobs)
+    elif (config.jobs or 1) == 1:
+        outcomes = run_here(jobs)
     else:
-        context = multiprocessing.get_context("spawn")
-        with concurrent.futures.ProcessPoolExecutor(
-            max_workers=min(jobs, len(tasks)), mp_context=context
-        ) as pool:
-            futures = {
-                pool.submit(run_job, spec, method, *args): k
-                for k, (spec, method) in enumerate(tasks)
-            }
-            for future in concurrent.futures.as_completed(futures):
-                k = futures[future]
-                try:
-                    rows[k] = future.result()
-                except Exception as exc:  # noqa: BLE001 - a crashed worker is one failed row
-                    spec, method = tasks[k]
-                    rows[k] = SuiteRow(
-                        sequence=spec.name,
-                        method=method,
-                        error=f"{type(exc).__name__}: worker failed ({exc})",
-                    )
-                if on_row is not None:
-                    on_row(rows[k])  # type: ignore[arg-type]
-    return SuiteResult(rows=[r for r in rows if r is not None])
+        outcomes = run_in_processes(jobs, config.jobs or 1)
+    rows: list[SuiteRow | None] = [None] * len(tasks)
+    for k, outcome in outcomes:
+        if isinstance(outcome, SuiteRow):
+            row = outcome
+        else:  # the worker died or the cluster lost the job
+            spec, method = tasks[k]
+            row = SuiteRow(
+                sequence=spec.name,
+                method=method,
+                error=f"{type(outcome).__name__}: worker failed ({outcome})",
+            )
+        rows[k] = dataclasses.replace(row, executor=config.executor)
+        if on_row is not None:
+            on_row(rows[k])  # type: ignore[arg-type]
+    done = [r for r in rows if r is not None]
+    done = [
+        dataclasses.replace(r, jobs_at_once=n)
+        for r, n in zip(done, jobs_at_once(done), strict=True)
+    ]
+    return SuiteResult(rows=done, executor=config.executor)
 
 
 _COLUMNS = (
@@ -330,9 +389,17 @@ def _cell(value: Any, spec: str) -> str:
     return format(value, spec) if spec else str(value)
 
 
+def timing_title(result: SuiteResult) -> str:
+    """The fps column's title: which executor ran the jobs and how many ran at once
+    ('fps (local, 1 at a time)', 'fps (dask, up to 2 at once)')."""
+    n = result.most_jobs_at_once
+    return f"fps ({result.executor}, {'1 at a time' if n == 1 else f'up to {n} at once'})"
+
+
 def to_markdown(result: SuiteResult) -> str:
-    """The suite as a markdown table."""
-    head = "| " + " | ".join(title for _, title, _ in _COLUMNS) + " |"
+    """The suite as a markdown table; the fps column's title says how the jobs ran."""
+    titles = [timing_title(result) if key == "fps" else title for key, title, _ in _COLUMNS]
+    head = "| " + " | ".join(titles) + " |"
     rule = "|" + "|".join("---" for _ in _COLUMNS) + "|"
     body = [
         "| "

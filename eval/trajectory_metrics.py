@@ -80,12 +80,18 @@ class TrajectoryEvaluation:
     object_size_errors: list[dict[str, Any]] | None = None
     """Per true object: class, sizes, absolute errors [m] (see `object_size_errors`); None
     when there is no object truth."""
+    tracked_fraction: float | None = None
+    """Frames the run tracked / frames it processed (the ATE is over the tracked ones);
+    None when the estimate's producer did not say."""
 
     def to_dict(self) -> dict[str, Any]:
-        """The eval.json content: exactly `EVAL_KEYS`, plus `object_size_errors` when set."""
+        """The eval.json content: exactly `EVAL_KEYS`, plus `object_size_errors` and
+        `tracked_fraction` when set."""
         out: dict[str, Any] = {key: getattr(self, key) for key in EVAL_KEYS}
         if self.object_size_errors is not None:
             out["object_size_errors"] = self.object_size_errors
+        if self.tracked_fraction is not None:
+            out["tracked_fraction"] = self.tracked_fraction
         return out
 
 

@@ -7,7 +7,7 @@ Keys come from `LandmarkKeys`, whose symbol characters the caller chooses.
 Pattern to follow: give every pose an odometry factor (BetweenFactorPose3) or a
 prior. A pose observed only through planes needs three planes with linearly
 independent normals; with fewer, ISAM2 and Gauss-Newton raise "Indeterminate
-linear system" (a RuntimeError).
+linear system" (a RuntimeError); `RecoveringISAM2` recovers from it (`recovery`).
 
 Each factory returns a ready gtsam factor; the Python (CustomFactor) ones cost
 about an order of magnitude more to linearise than built-ins and hold the GIL,
@@ -26,13 +26,18 @@ _EXPORTS = {
     "AddedFactors": ".landmarks",
     "LandmarkConfig": ".config",
     "LandmarkKeys": ".config",
+    "LandmarkObject": ".landmark_objects",
     "PlaneLandmarks": ".landmarks",
+    "PoseGateSigmas": ".gating",
+    "RecoveringISAM2": ".recovery",
+    "UpdateOutcome": ".recovery",
     "corner_factor": ".corner_observation",
     "measured_plane": ".plane_observation",
     "orthogonal_planes_factor": ".plane_structure",
     "parallel_planes_factor": ".plane_structure",
     "plane_factor": ".plane_observation",
     "point_on_plane_factor": ".point_on_plane",
+    "pose_gate_sigmas": ".gating",
     "robust_plane_factor": ".plane_observation",
     "structural_factor": ".plane_structure",
 }
@@ -42,13 +47,18 @@ __all__ = [
     "AddedFactors",
     "LandmarkConfig",
     "LandmarkKeys",
+    "LandmarkObject",
     "PlaneLandmarks",
+    "PoseGateSigmas",
+    "RecoveringISAM2",
+    "UpdateOutcome",
     "corner_factor",
     "measured_plane",
     "orthogonal_planes_factor",
     "parallel_planes_factor",
     "plane_factor",
     "point_on_plane_factor",
+    "pose_gate_sigmas",
     "robust_plane_factor",
     "structural_factor",
 ]
@@ -56,10 +66,13 @@ __all__ = [
 if TYPE_CHECKING:
     from .config import LandmarkConfig, LandmarkKeys
     from .corner_observation import corner_factor
+    from .gating import PoseGateSigmas, pose_gate_sigmas
+    from .landmark_objects import LandmarkObject
     from .landmarks import AddedFactors, PlaneLandmarks
     from .plane_observation import measured_plane, plane_factor, robust_plane_factor
     from .plane_structure import orthogonal_planes_factor, parallel_planes_factor, structural_factor
     from .point_on_plane import point_on_plane_factor
+    from .recovery import RecoveringISAM2, UpdateOutcome
 
 
 def __getattr__(name: str) -> Any:

@@ -46,10 +46,15 @@ class LandmarkConfig:
     predicted pose) and a landmark normal [deg]."""
     associate_max_offset_m: float = 0.04
     """`associate` gate: offset difference [m]. Keep it below the gap between parallel
-    surfaces the scene has (two box tops 5 cm apart); widen it, and the angle gate,
-    when the predicted pose is worse than a few mm / tenths of a degree."""
+    surfaces the scene has (two box tops 5 cm apart). A predicted pose worse than a few
+    mm / tenths of a degree needs wider gates: give `associate` its covariance."""
     associate_max_corner_distance_m: float = 0.05
     """`associate` gate: distance of an observed corner to a corner landmark [m]."""
+    associate_pose_sigmas: float = 3.0
+    """When `associate` is given the predicted pose's covariance, each gate above widens
+    by this many of the pose's sigmas propagated to that plane or corner (in quadrature:
+    gate = sqrt(gate^2 + (k sigma)^2)); the gates above then cover the measurement and
+    landmark errors only."""
 
     def __post_init__(self) -> None:
         positive = (
@@ -61,6 +66,7 @@ class LandmarkConfig:
             "associate_max_angle_deg",
             "associate_max_offset_m",
             "associate_max_corner_distance_m",
+            "associate_pose_sigmas",
         )
         for name in positive:
             value = getattr(self, name)

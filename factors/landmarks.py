@@ -1,23 +1,33 @@
 """Plane and corner landmarks for a caller that owns its own GTSAM graph.
 
-`PlaneLandmarks` turns the front end's measurements of one frame (`FrameMeasurements`,
-from `FrontEnd.process(...).measurements()`) into factors
+`PlaneLandmarks` turns what the front end found in one frame (`FrontEnd.process(...)`, a
+`FrameObservation`, or just its `measurements()`) into factors
 and new landmark values, added to the caller's `NonlinearFactorGraph` and
 `Values` with the caller's pose key and the symbol characters the caller chose
 in `LandmarkKeys` (so our variables never collide with theirs):
 
     keys = LandmarkKeys(pose_char="x", plane_char="P", corner_char="C")
     landmarks = PlaneLandmarks(keys, LandmarkConfig(robust_kernel="huber"))
-    measurements = front_end.process(depth_m, stamp).measurements()
-    plane_ids, corner_ids = landmarks.associate(measurements, T_world_cam_pred)
+    observation = front_end.process(depth_m, stamp)
+    plane_ids, corner_ids = landmarks.associate(observation, T_world_cam_pred, pose_cov)
     added = landmarks.add_observations(
-        graph, new_values, keys.pose(i), T_world_cam_pred, measurements, plane_ids, corner_ids
+        graph, new_values, keys.pose(i), T_world_cam_pred, observation, plane_ids, corner_ids
     )
     ...  # the caller adds its own odometry / IMU factors, optimises
     landmarks.update_estimates(result)
+    landmarks.objects()  # rooms, boxes, ... with their sizes, from the optimised planes
 
-Frames: poses are T_world_cam (Pose3), plane landmarks OrientedPlane3 in the
-world frame (n . x + d = 0), corner landmarks Point3 in the world frame [m].
+Frames: poses are T_world_cam (a gtsam.Pose3 or a (4, 4) array wherever one is taken),
+plane landmarks OrientedPlane3 in the world frame (n . x + d = 0), corner landmarks
+Point3 in the world frame [m].
+
+Association gates are the config's fixed `associate_*` ones, widened by the predicted
+pose's uncertainty when its covariance is given (a (6, 6) matrix or a `gtsam.Marginals`;
+`planeslam.factors.gating`). New landmark ids are reserved when `associate` hands them
+out, so two calls never give the same new id. Objects: given whole `FrameObservation`s,
+the table keeps the plane-object map of those frames (`planeslam.mapping.Map`, in
+landmark ids) and `objects()` re-aggregates and classifies it on the current estimates.
+An indeterminate update: `planeslam.factors.recovery`.
 
 Rules kept here so the caller's system stays well posed: a landmark value is
 inserted exactly once (the first time its id is seen), only together with the
@@ -42,7 +52,8 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -54,10 +65,16 @@ from planeslam.core.types import (
     PlaneEstimate,
     PlaneMeasurement,
 )
+from planeslam.frontend.config import ObjectConfig
+from planeslam.frontend.objects import DEFAULT_PATTERNS, ObjectPattern
+from planeslam.frontend.pipeline import FrameObservation
+from planeslam.mapping.config import MapConfig
 from planeslam.tracking.association import associate_with_corners
 
 from .config import LandmarkConfig, LandmarkKeys
 from .corner_observation import corner_factor
+from .gating import pose_covariance_matrix, pose_gate_sigmas
+from .landmark_objects import LandmarkObject, LandmarkObjectMap
 from .plane_observation import plane_factor, robust_plane_factor
 from .plane_structure import structural_factor
 from .point_on_plane import point_on_plane_factor
@@ -79,6 +96,8 @@ class AddedFactors:
     """Landmark ids of the new plane landmarks."""
     new_corners: tuple[int, ...]
     """Landmark ids of the new corner landmarks."""
+    values: gtsam.Values = field(default_factory=gtsam.Values)
+    """The initial values of `new_keys` (also inserted into the caller's `values`)."""
 
     def count(self, kind: str) -> int:
         """Number of factors of one kind."""
@@ -98,7 +117,16 @@ class PlaneLandmarks:
     come from `keys.plane(id)` / `keys.corner(id)`.
     """
 
-    def __init__(self, keys: LandmarkKeys, config: LandmarkConfig | None = None) -> None:
+    def __init__(
+        self,
+        keys: LandmarkKeys,
+        config: LandmarkConfig | None = None,
+        map_config: MapConfig | None = None,
+        object_config: ObjectConfig | None = None,
+        patterns: tuple[ObjectPattern, ...] = DEFAULT_PATTERNS,
+    ) -> None:
+        """`map_config`, `object_config` and `patterns` shape the object layer (`objects`):
+        merging, re-aggregation, classes."""
         if not isinstance(keys, LandmarkKeys):
             raise ConfigError(f"keys={keys!r}: expected a planeslam.factors.LandmarkKeys")
         self.keys = keys
@@ -108,6 +136,7 @@ class PlaneLandmarks:
         self._structure_pairs: set[tuple[int, int]] = set()
         self._next_plane = 0
         self._next_corner = 0
+        self._objects = LandmarkObjectMap(map_config, object_config, patterns)
 
     # ------------------------------------------------------------------ table
 
@@ -154,7 +183,9 @@ class PlaneLandmarks:
     def forget(self, plane_ids: tuple[int, ...] = (), corner_ids: tuple[int, ...] = ()) -> None:
         """Drop landmarks whose values never reached the caller's system (after a failed update).
 
-        Their structural pairs are forgotten too, so they can be added again later.
+        Their structural pairs are forgotten too, so they can be added again later; their
+        ids stay used (never handed out again). In the object layer their planes and
+        corners stay, as geometry no landmark moves.
         """
         for j in plane_ids:
             self._planes.pop(j, None)
@@ -162,27 +193,54 @@ class PlaneLandmarks:
             self._corners.pop(k, None)
         gone = set(plane_ids)
         self._structure_pairs = {p for p in self._structure_pairs if not gone.intersection(p)}
+        self._objects.forget(plane_ids, corner_ids)
+
+    # ------------------------------------------------------------------ objects
+
+    def objects(self) -> list[LandmarkObject]:
+        """Plane-based objects (paper 4.2-4.3: class such as 'room' or 'box', size [m]) of
+        the frames given as `FrameObservation`s, re-aggregated on the current landmark
+        estimates (call `update_estimates` first); their planes and corners as landmark
+        ids. MapError when no frame came as a `FrameObservation` (measurements alone carry
+        no outlines or edge lengths to size objects with)."""
+        return self._objects.objects(self.plane_estimates(), self.corner_estimates())
+
+    def set_gravity_up(self, up_world: np.ndarray) -> None:
+        """The world's up direction (3,) (opposite to gravity, e.g. from an IMU) for the
+        objects' classes; by default it comes from the frames' floor-like planes."""
+        self._objects.set_gravity_up(up_world)
 
     # ------------------------------------------------------------------ association
 
     def associate(
         self,
-        measurements: FrameMeasurements,
-        T_world_cam_pred: np.ndarray,
+        measurements: FrameMeasurements | FrameObservation,
+        T_world_cam_pred: np.ndarray | gtsam.Pose3,
+        pose_covariance: np.ndarray | gtsam.Marginals | None = None,
+        pose_key: int | None = None,
+        *,
         max_angle_deg: float | None = None,
         max_offset_m: float | None = None,
         max_corner_distance_m: float | None = None,
     ) -> tuple[dict[int, int], dict[int, int]]:
         """Match a frame's planes and corners to the landmarks through a predicted pose.
 
-        T_world_cam_pred (4, 4). Uses `planeslam.tracking.association.associate_with_corners`
-        against the current landmark estimates (gates: normal angle [deg], offset [m],
-        corner distance [m]; None takes the config's `associate_*`). Returns
-        (plane_ids, corner_ids): observed plane id -> landmark id and observed corner
-        index -> landmark id; unmatched observations get fresh landmark ids (not yet in
-        the table: `add_observations` creates them).
+        measurements: the frame's `FrameMeasurements` or `FrameObservation`;
+        T_world_cam_pred: (4, 4) or gtsam.Pose3. Uses
+        `planeslam.tracking.association.associate_with_corners` against the current landmark
+        estimates, with gates (normal angle [deg], offset [m], corner distance [m]; None
+        takes the config's `associate_*`) that `pose_covariance` widens by the prediction's
+        uncertainty (`LandmarkConfig.associate_pose_sigmas`): a (6, 6) covariance of the
+        predicted pose (rotation [rad] first, then translation [m], gtsam's Pose3 order),
+        or a `gtsam.Marginals` with `pose_key` the key of the pose whose marginal to take.
+        Returns (plane_ids, corner_ids): observed plane id -> landmark id and observed
+        corner index -> landmark id. Unmatched observations get fresh landmark ids,
+        reserved at once (a later `associate` never hands them out again) and created by
+        `add_observations`.
         """
         cfg = self.config
+        if isinstance(measurements, FrameObservation):
+            measurements = measurements.measurements()
         max_angle_deg = cfg.associate_max_angle_deg if max_angle_deg is None else max_angle_deg
         max_offset_m = cfg.associate_max_offset_m if max_offset_m is None else max_offset_m
         if max_corner_distance_m is None:
@@ -202,6 +260,17 @@ class PlaneLandmarks:
         d_map = np.array([self._planes[j].d_world for j in map_ids], dtype=np.float64)
         n_obs = np.array([p.n_cam for p in planes], dtype=np.float64).reshape(-1, 3)
         d_obs = np.array([p.d_cam for p in planes], dtype=np.float64)
+        p_obs = np.array([c.p_cam for c in obs_corners], dtype=np.float64).reshape(-1, 3)
+        angle_gate: Any = math.radians(max_angle_deg)
+        offset_gate: Any = max_offset_m
+        corner_gate: Any = max_corner_distance_m
+        if pose_covariance is not None:
+            cov = pose_covariance_matrix(pose_covariance, pose_key)
+            sigmas = pose_gate_sigmas(T, cov, n_obs, p_obs)
+            k = cfg.associate_pose_sigmas
+            angle_gate = np.hypot(angle_gate, k * sigmas.angle_rad)
+            offset_gate = np.hypot(offset_gate, k * sigmas.offset_m)
+            corner_gate = np.hypot(corner_gate, k * sigmas.corner_m)
         association = associate_with_corners(
             n_map,
             d_map,
@@ -214,11 +283,11 @@ class PlaneLandmarks:
             np.array([[obs_row[i] for i in c.planes] for c in obs_corners])
             .reshape(-1, 3)
             .astype(np.int64),
-            np.array([c.p_cam for c in obs_corners], dtype=np.float64).reshape(-1, 3),
+            p_obs,
             T,
-            math.radians(max_angle_deg),
-            max_offset_m,
-            max_corner_distance_m,
+            angle_gate,
+            offset_gate,
+            corner_gate,
         )
         plane_ids = {planes[r].id: map_ids[m] for r, m in association.planes}
         next_plane = max(self._next_plane, max(self._planes, default=-1) + 1)
@@ -235,6 +304,7 @@ class PlaneLandmarks:
             elif all(i in plane_ids for i in corner.planes):
                 corner_ids[index] = next_corner
                 next_corner += 1
+        self._next_plane, self._next_corner = next_plane, next_corner  # reserved
         return plane_ids, corner_ids
 
     # ------------------------------------------------------------------ factors
@@ -244,17 +314,20 @@ class PlaneLandmarks:
         graph: gtsam.NonlinearFactorGraph,
         values: gtsam.Values,
         pose_key: int,
-        T_world_cam: np.ndarray,
-        measurements: FrameMeasurements,
+        T_world_cam: np.ndarray | gtsam.Pose3,
+        measurements: FrameMeasurements | FrameObservation,
         plane_ids: Mapping[int, int],
         corner_ids: Mapping[int, int] | None = None,
     ) -> AddedFactors:
         """Add one frame's plane / corner / structural factors and new landmarks.
 
         graph, values: the caller's (for iSAM2, this update's new factors and new
-        values); pose_key: the caller's key of this frame's Pose3 T_world_cam (the
-        caller inserts the pose value). T_world_cam (4, 4): current estimate of that
-        pose, used only to initialise new landmarks in the world frame.
+        values; for `RecoveringISAM2`, a graph and values of their own); pose_key: the
+        caller's key of this frame's Pose3 T_world_cam (the caller inserts the pose
+        value). T_world_cam ((4, 4) or gtsam.Pose3): current estimate of that pose, used
+        to initialise new landmarks in the world frame (and to place the frame in the
+        object layer). measurements: the frame's `FrameMeasurements`, or its
+        `FrameObservation`, which also goes into the object layer (`objects`).
         plane_ids: observed plane id (`Plane.id`) -> landmark id (observed planes
         missing from it are ignored); corner_ids: index in
         `measurements.corners` -> landmark id (None: no corners).
@@ -263,6 +336,14 @@ class PlaneLandmarks:
         AssociationError when two observed planes (or corners) map to one landmark.
         """
         cfg = self.config
+        observation = measurements if isinstance(measurements, FrameObservation) else None
+        if observation is not None:
+            measurements = observation.measurements()
+        if not isinstance(measurements, FrameMeasurements):
+            raise AssociationError(
+                f"measurements is a {type(measurements).__name__}, expected the front end's "
+                "FrameObservation or its FrameMeasurements"
+            )
         T = as_pose(T_world_cam, "T_world_cam")
         plane_ids = {int(i): int(j) for i, j in plane_ids.items()}
         corner_ids = {int(i): int(k) for i, k in (corner_ids or {}).items()}
@@ -278,6 +359,7 @@ class PlaneLandmarks:
         factors: list[gtsam.NonlinearFactor] = []
         kinds: list[str] = []
         new_keys: list[int] = []
+        new_values = gtsam.Values()
         new_planes: list[int] = []
         new_corners: list[int] = []
 
@@ -296,6 +378,7 @@ class PlaneLandmarks:
                 n_world, d_world = transform_plane(T, n_cam, float(plane.d_cam))
                 if not values.exists(key):
                     values.insert(key, gtsam.OrientedPlane3(np.r_[n_world, d_world]))
+                    new_values.insert(key, gtsam.OrientedPlane3(np.r_[n_world, d_world]))
                     new_keys.append(key)
                 self._planes[lm] = PlaneEstimate(n_world, d_world)
                 self._next_plane = max(self._next_plane, lm + 1)
@@ -324,6 +407,7 @@ class PlaneLandmarks:
                     p_world = transform_points(T, p_cam[None])[0]
                     if not values.exists(key):
                         values.insert(key, p_world)
+                        new_values.insert(key, p_world)
                         new_keys.append(key)
                     self._corners[lm] = _Corner(p_world, tied)  # type: ignore[arg-type]
                     self._next_corner = max(self._next_corner, lm + 1)
@@ -363,6 +447,8 @@ class PlaneLandmarks:
                     self._structure_pairs.add(pair)  # type: ignore[arg-type]
                     add(factor, "structure")
 
+        if observation is not None:
+            self._objects.add(observation, T, plane_ids, corner_ids)
         logger.debug(
             "pose %s: %d factors (%d planes, %d corners, %d structural), %d new landmarks",
             gtsam.DefaultKeyFormatter(pose_key),
@@ -378,6 +464,7 @@ class PlaneLandmarks:
             new_keys=tuple(new_keys),
             new_planes=tuple(new_planes),
             new_corners=tuple(new_corners),
+            values=new_values,
         )
 
     def _plane_covariance(self, plane: PlaneMeasurement) -> np.ndarray:
@@ -406,4 +493,4 @@ def _check_one_to_one(ids: dict[int, int], name: str) -> None:
         seen[lm] = obs
 
 
-__all__ = ["AddedFactors", "LandmarkConfig", "PlaneLandmarks"]
+__all__ = ["AddedFactors", "LandmarkConfig", "LandmarkObject", "PlaneLandmarks"]

@@ -15,19 +15,34 @@ _EXPORTS = {
     "AssociationError": "planeslam.core.errors",
     "CameraConfig": "planeslam.core.camera",
     "ConfigError": "planeslam.core.errors",
+    "CornerMeasurement": "planeslam.core.types",
     "DatasetConfig": "planeslam.io.config",
     "DatasetFormatError": "planeslam.core.errors",
+    "EdgeMeasurement": "planeslam.core.types",
     "EvaluationError": "planeslam.core.errors",
     "Frame": "planeslam.io.dataset",
+    "FrameMeasurements": "planeslam.core.types",
+    "FrameObservation": "planeslam.frontend.pipeline",
+    "FrontEnd": "planeslam.frontend.pipeline",
     "GeometryError": "planeslam.core.errors",
+    "LandmarkConfig": "planeslam.factors.config",
+    "LandmarkKeys": "planeslam.factors.config",
+    "LandmarkObject": "planeslam.factors.landmark_objects",
     "Map": "planeslam.mapping.world_map",
     "MapConfig": "planeslam.mapping.config",
     "MapError": "planeslam.core.errors",
+    "PlaneEstimate": "planeslam.core.types",
+    "PlaneLandmarks": "planeslam.factors.landmarks",
+    "PlaneMeasurement": "planeslam.core.types",
     "PlaneSlamConfig": "planeslam.config",
     "PlaneSlamError": "planeslam.core.errors",
+    "RecoveringISAM2": "planeslam.factors.recovery",
+    "ResolvedConfig": "planeslam.config",
     "SLAM": "planeslam.slam",
+    "TrackingPath": "planeslam.core.types",
     "Trajectory": "planeslam.io.trajectory",
     "TumDataset": "planeslam.io.dataset",
+    "explain_config": "planeslam.config",
     "load_config": "planeslam.config",
     "read_tum": "planeslam.io.trajectory",
     "resolve_config": "planeslam.config",
@@ -39,19 +54,34 @@ __all__ = [
     "AssociationError",
     "CameraConfig",
     "ConfigError",
+    "CornerMeasurement",
     "DatasetConfig",
     "DatasetFormatError",
+    "EdgeMeasurement",
     "EvaluationError",
     "Frame",
+    "FrameMeasurements",
+    "FrameObservation",
+    "FrontEnd",
     "GeometryError",
+    "LandmarkConfig",
+    "LandmarkKeys",
+    "LandmarkObject",
     "Map",
     "MapConfig",
     "MapError",
+    "PlaneEstimate",
+    "PlaneLandmarks",
+    "PlaneMeasurement",
     "PlaneSlamConfig",
     "PlaneSlamError",
+    "RecoveringISAM2",
+    "ResolvedConfig",
     "SLAM",
+    "TrackingPath",
     "Trajectory",
     "TumDataset",
+    "explain_config",
     "load_config",
     "read_tum",
     "resolve_config",
@@ -59,7 +89,13 @@ __all__ = [
 ]
 
 if TYPE_CHECKING:
-    from planeslam.config import PlaneSlamConfig, load_config, resolve_config
+    from planeslam.config import (
+        PlaneSlamConfig,
+        ResolvedConfig,
+        explain_config,
+        load_config,
+        resolve_config,
+    )
     from planeslam.core.camera import CameraConfig
     from planeslam.core.errors import (
         AssociationError,
@@ -70,6 +106,19 @@ if TYPE_CHECKING:
         MapError,
         PlaneSlamError,
     )
+    from planeslam.core.types import (
+        CornerMeasurement,
+        EdgeMeasurement,
+        FrameMeasurements,
+        PlaneEstimate,
+        PlaneMeasurement,
+        TrackingPath,
+    )
+    from planeslam.factors.config import LandmarkConfig, LandmarkKeys
+    from planeslam.factors.landmark_objects import LandmarkObject
+    from planeslam.factors.landmarks import PlaneLandmarks
+    from planeslam.factors.recovery import RecoveringISAM2
+    from planeslam.frontend.pipeline import FrameObservation, FrontEnd
     from planeslam.io.config import DatasetConfig
     from planeslam.io.dataset import Frame, TumDataset
     from planeslam.io.trajectory import Trajectory, read_tum, write_tum

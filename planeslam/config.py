@@ -2,21 +2,38 @@
 module beside its stage), mirrored by the YAML presets in `configs/`.
 
 Loading rejects unknown keys and names the valid ones (`planeslam.core.config`).
-Resolution order for a dataset run:
-preset or `--config` file -> the dataset's own `camera.yaml` -> `--camera`.
+A config is resolved from layers, each overlaid key by key on those below it:
+
+    defaults (the dataclasses) -> preset -> file -> the dataset's camera.yaml
+        -> camera override -> key overrides ('section.key=value')
+
+The preset is the one named (`config='tum_fr1'`), or below a file the one the file
+names (`base: tum_fr1`, or `base: other.yaml` relative to it, itself layered the same
+way), or else the one guessed from the dataset folder's name. `explain_config` also
+says which layer set each key.
 """
 
 from __future__ import annotations
 
-import dataclasses
+import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 from typing import Literal
 
 from planeslam.backend.config import BackendConfig
-from planeslam.core.camera import CameraConfig, DepthNoiseConfig
-from planeslam.core.config import from_mapping, read_yaml, save_yaml, to_mapping
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig, camera_override_values
+from planeslam.core.config import (
+    ConfigLayer,
+    format_with_sources,
+    from_mapping,
+    parse_override,
+    read_yaml,
+    resolve_layers,
+    save_yaml,
+    to_mapping,
+)
 from planeslam.core.errors import ConfigError
 from planeslam.frontend.config import IntersectionConfig, ObjectConfig, SegmentationConfig
 from planeslam.io.config import DatasetConfig
@@ -25,8 +42,13 @@ from planeslam.tracking.config import TrackingConfig
 
 __all__ = [
     "PRESETS",
+    "ConfigLayer",
     "PlaneSlamConfig",
+    "ResolvedConfig",
     "RunConfig",
+    "camera_layer",
+    "config_layers",
+    "explain_config",
     "from_mapping",
     "guess_preset",
     "load_camera_yaml",
@@ -54,10 +76,20 @@ class RunConfig:
     """A dataset run takes every n-th frame."""
     max_frames: int | None = None
     """A dataset run takes at most this many frames (None: all)."""
+    start_pose: Literal["groundtruth", "identity"] = "groundtruth"
+    """Pose of the first frame, which fixes the world frame of the trajectory and map.
+    'groundtruth': the ground-truth pose of the first frame when it is known (a dataset
+    with ground truth, or `T_world_first` given to `SLAM`), so estimates and truth share
+    a frame; the identity when it is not. 'identity': always the identity (the world is
+    the first camera's frame), ground truth or not."""
 
     def __post_init__(self) -> None:
         if self.backend not in ("isam2", "merge"):
             raise ConfigError(f"run.backend must be 'isam2' or 'merge', got {self.backend!r}")
+        if self.start_pose not in ("groundtruth", "identity"):
+            raise ConfigError(
+                f"run.start_pose must be 'groundtruth' or 'identity', got {self.start_pose!r}"
+            )
         if self.every < 1:
             raise ConfigError(f"run.every must be >= 1 (take every n-th frame), got {self.every}")
         if self.max_frames is not None and self.max_frames < 1:
@@ -87,7 +119,7 @@ class PlaneSlamConfig:
     backend: BackendConfig = field(default_factory=BackendConfig)
     """The iSAM2 backend: noise, keyframes, landmark factors."""
     run: RunConfig = field(default_factory=RunConfig)
-    """Backend choice, seed and frame selection of a run."""
+    """Backend choice, seed, frame selection and start pose of a run."""
 
 
 def preset_path(name: str) -> Path:
@@ -98,16 +130,11 @@ def preset_path(name: str) -> Path:
 
 
 def load_config(name_or_path: str | Path | None = None) -> PlaneSlamConfig:
-    """Load a preset name ('tum_fr1') or a YAML file path; None gives the defaults."""
+    """Load a preset name ('tum_fr1') or a YAML file path (over the preset it names as
+    `base`, else over the defaults); None gives the defaults."""
     if name_or_path is None:
         return PlaneSlamConfig()
-    text = str(name_or_path)
-    path = preset_path(text) if text in PRESETS else Path(text)
-    if not path.is_file():
-        raise ConfigError(
-            f"config {text!r}: neither a preset ({', '.join(PRESETS)}) nor a YAML file"
-        )
-    return from_mapping(PlaneSlamConfig, read_yaml(path), str(path))
+    return explain_config(config=name_or_path).config
 
 
 def load_camera_yaml(path: Path) -> CameraConfig:
@@ -133,18 +160,156 @@ def guess_preset(dataset_dir: Path) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class ResolvedConfig:
+    """A resolved config and where each of its values came from."""
+
+    config: PlaneSlamConfig
+    sources: Mapping[str, str]
+    """Dotted key ('camera.fx') -> the label of the layer that set it last ('preset
+    tum_fr1', 'file my.yaml', 'camera.yaml', ...), or 'default'."""
+    layers: tuple[str, ...]
+    """The layers applied over the defaults, in order (later ones win), in full."""
+
+    def to_yaml(self) -> str:
+        """The config as YAML with the source of every key as a comment after it; it loads
+        back (`load_config`) as the same config."""
+        applied = "".join(f"#   {layer}\n" for layer in self.layers) or "#   (none)\n"
+        return (
+            "# planeslam config: the defaults overlaid by these layers (later ones win):\n"
+            + applied
+            + format_with_sources(self.config, self.sources)
+        )
+
+    def replaced(self, config: PlaneSlamConfig, label: str) -> ResolvedConfig:
+        """This provenance for `config`, a changed copy of this config (e.g. by what a
+        dataset says of its camera): the keys whose values differ are marked `label`."""
+        old, new = _flat(to_mapping(self.config)), _flat(to_mapping(config))
+        changed = {key for key in self.sources if old[key] != new[key]}
+        if not changed:
+            return self
+        sources = {key: label if key in changed else src for key, src in self.sources.items()}
+        return ResolvedConfig(config, sources, self.layers + (label,))
+
+
+def _flat(mapping: Mapping[str, object], prefix: str = "") -> dict[str, object]:
+    """Nested mapping -> {dotted key: value}."""
+    out: dict[str, object] = {}
+    for key, value in mapping.items():
+        if isinstance(value, Mapping):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _preset_layer(name: str, why: str = "") -> list[ConfigLayer]:
+    """The layer of a bundled preset; none for 'defaults' (the dataclasses' own values)."""
+    if name == "defaults":
+        return []
+    path = preset_path(name)
+    return [ConfigLayer(read_yaml(path) or {}, f"preset {name}{why}", f"preset {name}")]
+
+
+def _file_layers(
+    path: Path, fallback: list[ConfigLayer], chain: tuple[Path, ...] = ()
+) -> list[ConfigLayer]:
+    """A config file's layer over its `base` (a preset name, or a YAML file relative to it,
+    layered the same way) or, without one, over `fallback`."""
+    data = read_yaml(path)
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys, got {type(data).__name__}")
+    data = dict(data)
+    if "base" not in data:
+        below = fallback
+    else:
+        base = data.pop("base")
+        if not isinstance(base, str) or not base:
+            raise ConfigError(
+                f"{path}: base expects a preset name ({', '.join(PRESETS)}) or a YAML file "
+                f"path, got {base!r}"
+            )
+        if base in PRESETS:
+            below = _preset_layer(base)
+        else:
+            base_path = Path(os.path.normpath(path.parent / base))  # absolute bases stay
+            if not base_path.is_file():
+                raise ConfigError(
+                    f"{path}: base {base!r} is neither a preset ({', '.join(PRESETS)}) nor a "
+                    f"YAML file ({base_path} not found)"
+                )
+            seen = chain + (path.resolve(),)
+            if base_path.resolve() in seen:
+                raise ConfigError(f"{path}: base {base!r} leads back to {base_path} (a cycle)")
+            below = _file_layers(base_path, fallback, seen)
+    return below + [ConfigLayer(data, str(path), f"file {path}")]
+
+
+def camera_layer(text: str, label: str = "camera override") -> ConfigLayer:
+    """The layer of a camera override 'fx,fy,cx,cy[,depth_scale]'."""
+    return ConfigLayer({"camera": camera_override_values(text)}, f"{label} {text!r}", label)
+
+
+def config_layers(
+    dataset_dir: Path | None = None,
+    config: str | Path | None = None,
+    camera: str | ConfigLayer | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
+) -> list[ConfigLayer]:
+    """The layers of a run's config, in the order they apply (see the module docstring).
+
+    config: a preset name or a YAML file (None: the preset guessed from the folder name,
+    or the defaults); camera: 'fx,fy,cx,cy[,depth_scale]' or a layer; overrides:
+    'section.key=value' strings (`planeslam.core.config.parse_override`) or layers."""
+    guessed: list[ConfigLayer] = []
+    preset = guess_preset(dataset_dir) if dataset_dir is not None else None
+    if preset is not None:
+        assert dataset_dir is not None
+        guessed = _preset_layer(preset, f" (guessed from the folder name {dataset_dir.name!r})")
+    text = None if config is None else str(config)
+    if text is None:
+        layers = guessed
+    elif text in PRESETS:
+        layers = _preset_layer(text)
+    elif Path(text).is_file():
+        layers = _file_layers(Path(text), guessed)
+    else:
+        raise ConfigError(
+            f"config {text!r}: neither a preset ({', '.join(PRESETS)}) nor a YAML file"
+        )
+    camera_yaml = None if dataset_dir is None else dataset_dir / "camera.yaml"
+    if camera_yaml is not None and camera_yaml.is_file():
+        data = read_yaml(camera_yaml)
+        layers.append(
+            ConfigLayer({"camera": {} if data is None else data}, str(camera_yaml), "camera.yaml")
+        )
+    if camera:
+        layers.append(camera_layer(camera) if isinstance(camera, str) else camera)
+    layers += [parse_override(o) if isinstance(o, str) else o for o in overrides]
+    return layers
+
+
+def explain_config(
+    dataset_dir: Path | None = None,
+    config: str | Path | None = None,
+    camera: str | ConfigLayer | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
+) -> ResolvedConfig:
+    """The config for a run (arguments as `config_layers`) with the source of every key."""
+    layers = config_layers(dataset_dir, config, camera, overrides)
+    cfg, sources = resolve_layers(PlaneSlamConfig, layers)
+    return ResolvedConfig(cfg, sources, tuple(layer.source for layer in layers))
+
+
 def resolve_config(
     dataset_dir: Path | None = None,
     config: str | Path | None = None,
-    camera: str | None = None,
+    camera: str | ConfigLayer | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
 ) -> PlaneSlamConfig:
-    """The config for a run: `config` (or a preset guessed from the folder name),
-    then the folder's `camera.yaml` when present, then the `--camera` override."""
-    if config is None and dataset_dir is not None:
-        config = guess_preset(dataset_dir)
-    cfg = load_config(config)
-    if dataset_dir is not None and (dataset_dir / "camera.yaml").is_file():
-        cfg = dataclasses.replace(cfg, camera=load_camera_yaml(dataset_dir / "camera.yaml"))
-    if camera:
-        cfg = dataclasses.replace(cfg, camera=cfg.camera.with_overrides(camera))
-    return cfg
+    """The config for a run: the preset (named, named as a file's `base`, or guessed from
+    the folder name), then the `config` file, the folder's `camera.yaml` when present, the
+    camera override and the key overrides, each overlaid key by key."""
+    return explain_config(dataset_dir, config, camera, overrides).config

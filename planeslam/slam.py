@@ -18,18 +18,24 @@ landmarks, and the pose tracked since moves by the keyframe's correction. Every 
 pose is re-anchored on its final keyframe pose.
 
 `SLAM.process(depth_m, timestamp, rgb)` needs no dataset folder (live cameras, other
-sources); `run_frames` drives it over a `TumDataset`. Poses are T_world_cam (4, 4); the
-world frame is the first camera's unless `T_world_first` is given. A `SLAM` is a context
-manager: leaving the block (or dropping the object) stops its backend process.
+sources); `run_frames` drives it over an `RgbdDataset` (folder or bag). Poses are
+T_world_cam (4, 4). The first frame's pose fixes the world frame (`run.start_pose`): the
+identity (the first camera's frame), or its ground-truth pose when one is known
+(`T_world_first`; `slam_for_dataset` reads it from the dataset).
+A `SLAM` is a context manager: leaving the block (or dropping the object) stops its
+backend process.
 """
 
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
+import dataclasses
 import logging
 import time
 import weakref
 from collections.abc import Callable, Iterable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -44,15 +50,20 @@ from planeslam.backend.base import (
     create_backend,
 )
 from planeslam.config import PlaneSlamConfig
-from planeslam.core.errors import ConfigError, DatasetFormatError, PlaneSlamError
-from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
+from planeslam.core.errors import ConfigError, DatasetFormatError, FrameReadError, PlaneSlamError
+from planeslam.core.frame_checks import check_depth_units, check_rgb, clean_depth
+from planeslam.core.geometry import as_pose, invert_pose, orthonormalize_pose, transform_points
 from planeslam.core.native_tuning import single_native_threads
 from planeslam.core.types import TrackingPath
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
-from planeslam.io.dataset import Frame, TumDataset
+from planeslam.io.dataset import Frame
+from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import Trajectory
+from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
+from planeslam.tracking.estimator import PoseConstraints
 from planeslam.tracking.odometry import RgbdOdometry
+from planeslam.tracking.segments import Segment
 from planeslam.tracking.tracker import MapView, Tracker, TrackResult
 
 logger = logging.getLogger(__name__)
@@ -64,6 +75,14 @@ SPARSE_STRIDE = 8
 
 POINT_BYTES = 15
 """Bytes per point of the point cloud the map stands in for: float32 x, y, z + uint8 r, g, b."""
+
+FUSED_VOXEL_M = 0.01
+"""Voxel of the fused point cloud the map is compared with [m]."""
+
+FUSED_STRIDE = 2
+"""Keyframes' pixels (every FUSED_STRIDE-th in each direction) fill the fused cloud: a
+lower bound of the cloud of all frames at full resolution (neighbouring frames and
+pixels mostly fall in the same 1 cm voxels), so the memory ratio errs low."""
 
 
 @dataclass(frozen=True)
@@ -96,6 +115,11 @@ class FrameResult:
     observation: FrameObservation = field(repr=False)
     stage_ms: dict[str, float] = field(default_factory=dict)
     """Wall-clock ms per stage: the front end's, then tracking, map, backend."""
+    rgb: np.ndarray | None = field(default=None, repr=False)
+    """(H, W, 3) uint8 colour image as given to `process` (not copied), or None."""
+    constraints: PoseConstraints | None = None
+    """Which degrees of freedom the planes fixed and what fixed the rest (None: first or
+    lost frame)."""
 
     @property
     def lost(self) -> bool:
@@ -113,6 +137,7 @@ class FrameResult:
             "corners": len(self.observation.structure.corners),
             "frontend_reason": self.observation.reason,
             "stage_ms": {k: round(v, 3) for k, v in self.stage_ms.items()},
+            "constraints": None if self.constraints is None else self.constraints.to_record(),
         }
 
 
@@ -123,20 +148,37 @@ class SLAM:
         self,
         config: PlaneSlamConfig,
         backend: BackendKind | str | None = None,
-        T_world_first: np.ndarray | None = None,
+        T_world_first: np.ndarray | Any | None = None,
         seed: int | None = None,
+        map: Map | None = None,
+        localize: bool = False,
     ) -> None:
-        """`backend` and `seed` default to the config's `run` section."""
+        """`backend` and `seed` default to the config's `run` section. `T_world_first`
+        ((4, 4) array or gtsam.Pose3): the first frame's ground-truth pose, taken with
+        `run.start_pose: groundtruth` (None: the identity); ConfigError with 'identity'.
+        `map` (e.g. `Map.load(path)`): track in this map instead of starting an empty one;
+        the first frame is placed in it by relocalisation (T_world_first only breaks ties)
+        and frames are lost until one is. With `localize` the map is not changed (no
+        merging, no backend keyframes); without it, it is extended as usual."""
+        if localize and map is None:
+            raise ConfigError("localize needs a map to localise in (map=Map.load(path))")
         self.config = config
         self.front_end = FrontEnd(config, seed=config.run.seed if seed is None else seed)
         odometry = RgbdOdometry(config.camera) if config.tracking.rgbd_odometry else None
-        self.tracker = Tracker(config.tracking, odometry)
-        self.map = Map(config.map, config.objects)
+        self.tracker = Tracker(
+            config.tracking, odometry, config.camera, config.sensor, config.run.seed
+        )
+        self.map = map if map is not None else Map(config.map, config.objects)
+        self.localize = localize
+        """Track in `map` without changing it."""
+        self._in_given_map = map is not None
+        if self._in_given_map:
+            self.tracker.expect_jump()
         self.backend: Backend = create_backend(backend or config.run.backend, config.backend)
         self._stop_backend = weakref.finalize(self, self.backend.close)
         """Stops the backend process when the SLAM is closed, finished or dropped."""
         self._finished = False
-        self._T_world_first = np.eye(4) if T_world_first is None else np.asarray(T_world_first)
+        self._T_world_first = _first_pose(config, T_world_first)
         self._stamps: list[float] = []
         self._anchor: list[int] = []
         """Per frame: the keyframe (frame index) its pose is expressed against."""
@@ -144,17 +186,26 @@ class SLAM:
         """Per frame: pose relative to its anchor keyframe's online pose."""
         self._keyframe_online: dict[int, np.ndarray] = {}
         """Keyframe pose when it was added (tracked, or optimised by its own update)."""
+        self._keyframe_array: np.ndarray | None = None
+        """`_keyframe_online` as one (K, 4, 4) array, rebuilt after a change."""
         self._keyframe_final: dict[int, np.ndarray] = {}
         """Keyframe pose after the last optimisation (`finish`); the online one until then."""
         self._last_keyframe: int | None = None
         self._velocity = np.eye(4)
         """Last motion T_prev_cur of tracked frames (constant-velocity prediction)."""
         self._last_tracked: np.ndarray | None = None
+        self._tracked: list[bool] = []
+        """Per frame: whether it has a pose (False: lost, or in a segment not joined yet)."""
+        self._segment: Segment | None = None
+        """The segment tracking since the last loss, until it joins the map."""
         self._pending: _PendingKeyframe | None = None
         self.backend_result: BackendResult | None = None
         """What the backend reported at `finish`: update times, failures, factors."""
         self.pointcloud_bytes = 0
-        """Bytes of the point cloud of every processed frame (valid depth x POINT_BYTES)."""
+        """Bytes of all processed frames' clouds merged (valid depth x POINT_BYTES): the
+        paper's comparison."""
+        self.fused_cloud = FusedCloudSize(FUSED_VOXEL_M)
+        """The keyframes' clouds fused with their tracked poses, 1 cm voxels."""
 
     # -------------------------------------------------------------------------- lifecycle
 
@@ -187,44 +238,48 @@ class SLAM:
         return self._last_tracked @ self._velocity
 
     def map_view(self) -> MapView:
-        """The map's planes and corners for tracking (world frame)."""
-        ids, normals, d = self.map.plane_arrays()
-        corner_ids, corner_planes, corner_points = self.map.corner_arrays()
-        corners, planes = self.map.corners, self.map.planes
-        convex = np.array([corners[int(c)].convex_edges for c in corner_ids], dtype=np.int64)
-        area = np.array([planes[int(i)].area_m2 for i in ids], dtype=np.float64)
-        return MapView(ids, normals, d, corner_ids, corner_planes, corner_points, convex, area)
+        """The map's planes, corners, edges and objects for tracking (world frame)."""
+        return map_view(self.map)
 
     def _is_keyframe(self, T_world_cam: np.ndarray, new_planes: int) -> bool:
         if self._last_keyframe is None:
             return True
-        T_kf = self._keyframe_online[self._last_keyframe]
         since = self.frames - self._last_keyframe
-        return self.backend.is_keyframe(T_kf, T_world_cam, since, new_planes)
+        return self.backend.is_keyframe(self._keyframe_poses(), T_world_cam, since, new_planes)
+
+    def _keyframe_poses(self) -> np.ndarray:
+        """(K, 4, 4) online keyframe poses, increasing frame index (the last one last)."""
+        if self._keyframe_array is None:
+            self._keyframe_array = np.asarray(list(self._keyframe_online.values()))
+        return self._keyframe_array
+
+    def _set_keyframe_online(self, index: int, T_world_cam: np.ndarray) -> None:
+        self._keyframe_online[index] = T_world_cam
+        self._keyframe_array = None
 
     # -------------------------------------------------------------------------- frames
 
     def process(
         self, depth_m: np.ndarray, timestamp: float, rgb: np.ndarray | None = None
     ) -> FrameResult:
-        """Process one frame: (H, W) depth [m] (0 = invalid), its timestamp [s], and
-        optionally (H, W, 3) uint8 RGB (for the RGB-D odometry fallback and map colours).
-        Raises PlaneSlamError, changing nothing, after `finish` or `close`."""
+        """Process one frame: (H, W) float depth [m] (0, NaN and +-inf = invalid), its
+        timestamp [s] (after the previous frame's), and optionally (H, W, 3) uint8 RGB (for
+        the RGB-D odometry fallback and map colours).
+        Raises PlaneSlamError, changing nothing, after `finish` or `close`, and
+        DatasetFormatError, changing nothing, for a bad frame: another shape or dtype,
+        depth that cannot be metres (raw sensor values, millimetres: the message names the
+        likely depth_scale), greyscale or RGBA colour, a timestamp not after the last."""
         if self._finished:
             raise PlaneSlamError(
                 "this SLAM has finished (finish or close was called); create a new one"
             )
-        depth_m = np.asarray(depth_m)
         cam = self.config.camera
-        if depth_m.shape != (cam.height, cam.width):
-            raise DatasetFormatError(
-                f"depth image is {depth_m.shape}, the camera config says "
-                f"({cam.height}, {cam.width})"
-            )
-        if rgb is not None and np.asarray(rgb).shape[:2] != depth_m.shape:
-            raise DatasetFormatError(
-                f"colour image is {np.asarray(rgb).shape}, depth is {depth_m.shape}"
-            )
+        depth_m = clean_depth(depth_m, (cam.height, cam.width), depth_scale=cam.depth_scale)
+        max_range_m = self.config.segmentation.max_depth_m
+        check_depth_units(depth_m, "depth_m", max_range_m, camera_depth_scale=cam.depth_scale)
+        if rgb is not None:
+            rgb = check_rgb(rgb, depth_m.shape)
+        timestamp = self._check_timestamp(timestamp)
         index = self.frames
         observation = self.front_end.process(depth_m, timestamp)
         stage_ms = dict(observation.stage_ms)
@@ -236,17 +291,26 @@ class SLAM:
 
         t0 = time.perf_counter()
         T_pred = self.predicted_pose()
-        if index == 0:
+        if index == 0 and not self._in_given_map:
             track = TrackResult(self._T_world_first, TrackingPath.FIRST, "first frame")
         else:
             track = self.tracker.track(observation, self.map_view(), T_pred, rgb, depth_m)
+        joined = None
+        if self._segment is not None or (track.lost and self.config.tracking.segments):
+            track, joined = self._segment_step(index, observation, rgb, depth_m, track)
         T_world_cam = orthonormalize_pose(track.T_world_cam)
         stage_ms["tracking"] = 1e3 * (time.perf_counter() - t0)
 
         keyframe = track.path.maps and self._is_keyframe(T_world_cam, track.new_planes)
         if keyframe:
-            T_world_cam = self._add_keyframe(index, timestamp, observation, track, rgb, stage_ms)
+            if not self.localize:  # a localising run keeps keyframes for tracking only
+                T_world_cam = self._add_keyframe(
+                    index, timestamp, observation, track, rgb, stage_ms
+                )
+            self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, track.keypoints)
         self._remember(index, timestamp, T_world_cam, keyframe, track.lost)
+        if joined is not None:
+            self._join(index, joined)
         valid = np.count_nonzero(np.isfinite(depth_m) & (depth_m > 0))
         self.pointcloud_bytes += POINT_BYTES * int(valid)
         if track.lost:
@@ -260,6 +324,79 @@ class SLAM:
             keyframe=keyframe,
             observation=observation,
             stage_ms=stage_ms,
+            rgb=rgb,
+            constraints=track.constraints,
+        )
+
+    def _check_timestamp(self, timestamp: float) -> float:
+        """`timestamp` [s] as a float: a finite number after the previous frame's."""
+        try:
+            t = float(timestamp)
+        except (TypeError, ValueError):
+            raise DatasetFormatError(
+                f"timestamp {timestamp!r} is not a number of seconds"
+            ) from None
+        if not np.isfinite(t):
+            raise DatasetFormatError(f"timestamp {timestamp!r} is not a finite number of seconds")
+        if self._stamps and not t > self._stamps[-1]:
+            raise DatasetFormatError(
+                f"timestamp {t:.6f} s is not after the previous frame's {self._stamps[-1]:.6f} s "
+                "(frames must come in increasing time order)"
+            )
+        return t
+
+    def _segment_step(
+        self,
+        index: int,
+        observation: FrameObservation,
+        rgb: np.ndarray | None,
+        depth_m: np.ndarray,
+        track: TrackResult,
+    ) -> tuple[TrackResult, Segment | None]:
+        """Segments (`planeslam.tracking.segments`): a lost frame starts one; while one is
+        open, every frame is tracked in it too. Returns the frame's result (its reason says
+        which segment holds a lost frame) and the segment it joins to the map, if any."""
+        tracking = self.config.tracking
+        segment = self._segment
+        T_seg = segment.track(index, observation, rgb, depth_m) if segment is not None else None
+        if not track.lost:
+            self._segment = None
+            return track, (segment if segment is not None and T_seg is not None else None)
+        if T_seg is None:  # the segment lost it too (or there is none): one starts here
+            seed = self.config.run.seed + index
+            self._segment = Segment(
+                index,
+                observation,
+                rgb,
+                tracking,
+                self.config.camera,
+                self.config.sensor,
+                seed,
+                track,
+            )
+            note = "a new segment starts here"
+        else:
+            assert segment is not None
+            note = f"tracked in the segment since frame {segment.first}, not joined yet"
+        return dataclasses.replace(track, reason=f"{track.reason}; {note}"), None
+
+    def _join(self, index: int, segment: Segment) -> None:
+        """Frame `index` relocalised in the map and tracked in `segment`: every frame of the
+        segment gets a pose, anchored where frame `index` is (so later corrections move
+        them with it)."""
+        anchor, T_anchor_join = self._anchor[index], self._T_anchor_cam[index]
+        T_join_seg = invert_pose(segment.poses[index])
+        for k, T_seg_cam in segment.poses.items():
+            if k < index:
+                self._anchor[k] = anchor
+                self._T_anchor_cam[k] = T_anchor_join @ T_join_seg @ T_seg_cam
+                self._tracked[k] = True
+        logger.info(
+            "segment of frames %d-%d joined the map at frame %d (%d frames tracked in it)",
+            segment.first,
+            index - 1,
+            index,
+            len(segment.poses) - 1,
         )
 
     def _add_keyframe(
@@ -289,6 +426,7 @@ class SLAM:
             reaggregate=self.backend.objects_every_keyframe,
         )
         self._add_sparse_points(observation, T_world_cam, rgb)
+        self._add_to_fused_cloud(observation, T_world_cam)
         stage_ms["map"] = 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
         T_prev_cam = None  # measured motion since the last keyframe
@@ -305,7 +443,7 @@ class SLAM:
                 T_prev_cam=T_prev_cam,
             )
         )
-        self._keyframe_online[index] = T_world_cam
+        self._set_keyframe_online(index, T_world_cam)
         self._pending = _PendingKeyframe(
             index, tuple(merged.planes.values()), tuple(merged.corners.values())
         )
@@ -327,7 +465,8 @@ class SLAM:
         )
         self._pending = None
         correction = update.T_world_cam @ invert_pose(self._keyframe_online[pending.index])
-        self._keyframe_online[pending.index] = update.T_world_cam
+        self._set_keyframe_online(pending.index, update.T_world_cam)
+        self.tracker.move_keyframe(pending.index, update.T_world_cam)
         self._keyframe_final[pending.index] = update.T_world_cam
         self.map.apply_estimates(
             update.planes, update.corners, pending.plane_ids, pending.corner_ids, reaggregate=False
@@ -335,6 +474,18 @@ class SLAM:
         if move_last_tracked and self._last_tracked is not None:
             self._last_tracked = orthonormalize_pose(correction @ self._last_tracked)
         return correction
+
+    @property
+    def fused_cloud_bytes(self) -> int:
+        """Bytes of the fused 1 cm point cloud (`POINT_BYTES` per occupied voxel)."""
+        return POINT_BYTES * self.fused_cloud.voxels
+
+    def _add_to_fused_cloud(self, observation: FrameObservation, T_world_cam: np.ndarray) -> None:
+        if observation.cloud is None:
+            return
+        xyz = observation.cloud[::FUSED_STRIDE, ::FUSED_STRIDE].reshape(-1, 3)
+        xyz = xyz[xyz[:, 2] > 0]
+        self.fused_cloud.add(transform_points(T_world_cam, xyz.astype(np.float64)))
 
     def _add_sparse_points(self, observation, T_world_cam, rgb) -> None:
         """Non-planar points of the frame (label -1), subsampled, into the map's sparse cloud."""
@@ -349,16 +500,20 @@ class SLAM:
     def _remember(self, index, timestamp, T_world_cam, keyframe, lost) -> None:
         if not lost:
             if self._last_tracked is not None:
-                self._velocity = invert_pose(self._last_tracked) @ T_world_cam
+                gap = self._tracked and not self._tracked[-1]  # no velocity across lost frames
+                self._velocity = np.eye(4) if gap else invert_pose(self._last_tracked) @ T_world_cam
             self._last_tracked = T_world_cam
+        self._tracked.append(not lost)
         if keyframe:  # the first frame always is one, so every frame has an anchor
             self._last_keyframe = index
-            self._keyframe_online[index] = self._keyframe_final[index] = T_world_cam
+            self._set_keyframe_online(index, T_world_cam)
+            self._keyframe_final[index] = T_world_cam
         anchor = self._last_keyframe
-        assert anchor is not None, "the first frame is always a keyframe"
+        assert anchor is not None or lost, "the first tracked frame is always a keyframe"
         self._stamps.append(float(timestamp))
-        self._anchor.append(anchor)
-        self._T_anchor_cam.append(invert_pose(self._keyframe_online[anchor]) @ T_world_cam)
+        self._anchor.append(-1 if anchor is None else anchor)  # -1: lost before any keyframe
+        T_anchor = np.eye(4) if anchor is None else self._keyframe_online[anchor]
+        self._T_anchor_cam.append(invert_pose(T_anchor) @ T_world_cam)
 
     def finish(self) -> float:
         """End of the sequence: the backend's final optimisation (iSAM2: a batch over the
@@ -376,20 +531,27 @@ class SLAM:
         finally:
             self._stop_backend()
         self._keyframe_final.update(result.keyframe_poses)
-        self.map.apply_estimates(result.planes, result.corners)
+        for index, T_world_cam in result.keyframe_poses.items():
+            self.tracker.move_keyframe(index, T_world_cam)  # keypoints follow the final map
+        if not self.localize:
+            self.map.apply_estimates(result.planes, result.corners)
         self.backend_result = result
         return 1e3 * (time.perf_counter() - start)
 
     # -------------------------------------------------------------------------- results
 
+    @property
+    def tracked_frames(self) -> int:
+        """Frames with a pose (every processed frame but the lost ones)."""
+        return int(sum(self._tracked))
+
     def trajectory(self) -> Trajectory:
-        """Every processed frame's pose, each re-anchored on its optimised keyframe."""
-        poses = [
-            self._keyframe_final[a] @ T
-            for a, T in zip(self._anchor, self._T_anchor_cam, strict=True)
-        ]
+        """Every tracked frame's pose, each re-anchored on its optimised keyframe; lost
+        frames are left out (as ORB-SLAM does)."""
+        rows = [k for k, tracked in enumerate(self._tracked) if tracked]
+        poses = [self._keyframe_final[self._anchor[k]] @ self._T_anchor_cam[k] for k in rows]
         return Trajectory(
-            timestamps=np.asarray(self._stamps, dtype=np.float64),
+            timestamps=np.asarray(self._stamps, dtype=np.float64)[rows],
             T_world_cam=np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4),
         )
 
@@ -409,6 +571,76 @@ class RunSummary:
     """Per frame {stage: ms}."""
     finish_ms: float = 0.0
     """`SLAM.finish` (final batch optimisation), included in `seconds`."""
+    skipped_frames: int = 0
+    """Frames left out because an image could not be read (FrameReadError)."""
+
+
+@dataclass
+class RunTally:
+    """What `run_frames` has done so far. A caller that passes its own keeps the counts of
+    a run that is interrupted or fails: `summary()` then describes the frames until then."""
+
+    start: float = field(default_factory=time.perf_counter)
+    """`time.perf_counter()` when processing started."""
+    frame_timings: list[dict[str, float]] = field(default_factory=list)
+    """Per processed frame {stage: ms}, 'read' first."""
+    paths: dict[str, int] = field(default_factory=dict)
+    lost_frames: int = 0
+    keyframes: int = 0
+    skipped_frames: int = 0
+    finish_ms: float = 0.0
+
+    def add(self, result: FrameResult, read_ms: float) -> None:
+        self.frame_timings.append({"read": read_ms, **result.stage_ms})
+        self.paths[result.path.value] = self.paths.get(result.path.value, 0) + 1
+        self.lost_frames += result.lost
+        self.keyframes += result.keyframe
+
+    def summary(self) -> RunSummary:
+        """The counts, with the seconds since `start`."""
+        return RunSummary(
+            frames=len(self.frame_timings),
+            seconds=time.perf_counter() - self.start,
+            lost_frames=self.lost_frames,
+            keyframes=self.keyframes,
+            paths=dict(self.paths),
+            frame_timings=list(self.frame_timings),
+            finish_ms=self.finish_ms,
+            skipped_frames=self.skipped_frames,
+        )
+
+
+def map_view(world_map: Map) -> MapView:
+    """The planes, corners, edges and objects (with corners) of `world_map` as tracking's
+    arrays, world frame."""
+    ids, normals, d = world_map.plane_arrays()
+    corner_ids, corner_planes, corner_points = world_map.corner_arrays()
+    corners, planes = world_map.corners, world_map.planes
+    row = {int(pid): k for k, pid in enumerate(ids)}
+    edges = list(world_map.edges.values())
+    objects = [o for o in world_map.objects if o.corners and all(c in corners for c in o.corners)]
+    return MapView(
+        ids,
+        normals,
+        d,
+        corner_ids,
+        corner_planes,
+        corner_points,
+        np.array([corners[int(c)].convex_edges for c in corner_ids], dtype=np.int64),
+        np.array([planes[int(i)].area_m2 for i in ids], dtype=np.float64),
+        edge_planes=np.array([[row[a], row[b]] for a, b in (e.planes for e in edges)])
+        .astype(np.int64)
+        .reshape(-1, 2),
+        edge_segments=np.array([e.segment for e in edges], dtype=np.float64).reshape(-1, 2, 3),
+        edge_lengths=np.array([e.length_m for e in edges], dtype=np.float64),
+        edge_angles=np.array([e.angle_rad for e in edges], dtype=np.float64),
+        edge_convex=np.array([e.convex for e in edges], dtype=bool),
+        object_classes=tuple(o.cls for o in objects),
+        object_sizes=tuple(tuple(o.size_m) for o in objects),
+        object_centres=np.array(
+            [np.mean([corners[c].point for c in o.corners], axis=0) for o in objects]
+        ).reshape(-1, 3),
+    )
 
 
 def frame_indices(num_frames: int, max_frames: int | None, every: int) -> list[int]:
@@ -422,19 +654,39 @@ def frame_indices(num_frames: int, max_frames: int | None, every: int) -> list[i
 
 def slam_for_dataset(
     config: PlaneSlamConfig,
-    dataset: TumDataset,
+    dataset: RgbdDataset,
     first_index: int,
     backend: BackendKind | str | None = None,
     seed: int | None = None,
 ) -> SLAM:
-    """A SLAM whose world frame is the dataset's ground-truth frame: it starts at the
-    ground-truth pose of frame `first_index` (the identity without ground truth), so the
-    estimates and the truth can be compared pose by pose."""
-    T_world_first = dataset.groundtruth_pose(dataset.timestamps[first_index])
+    """A SLAM starting at frame `first_index` as `run.start_pose` says: 'groundtruth' at its
+    ground-truth pose (the identity without ground truth), so the estimates and the truth
+    share the world frame and compare pose by pose; 'identity' at the identity."""
+    T_world_first = None
+    if config.run.start_pose == "groundtruth":
+        T_world_first = dataset.groundtruth_pose(dataset.timestamps[first_index])
+    known = T_world_first is not None and dataset.groundtruth is not None
+    logger.info(
+        "start pose (run.start_pose %s): %s",
+        config.run.start_pose,
+        "the first frame's ground truth" if known else "the identity",
+    )
     return SLAM(config, backend, T_world_first=T_world_first, seed=seed)
 
 
-def _read(dataset: TumDataset, index: int) -> tuple[Frame, float]:
+def _first_pose(config: PlaneSlamConfig, T_world_first: np.ndarray | Any | None) -> np.ndarray:
+    """The first frame's pose (4, 4) under `run.start_pose`."""
+    if T_world_first is None:
+        return np.eye(4)
+    if config.run.start_pose == "identity":
+        raise ConfigError(
+            "T_world_first is given but run.start_pose is 'identity': set run.start_pose to "
+            "'groundtruth' to start at that pose, or pass no T_world_first"
+        )
+    return as_pose(T_world_first, "T_world_first", ConfigError)
+
+
+def _read(dataset: RgbdDataset, index: int) -> tuple[Frame, float]:
     t0 = time.perf_counter()
     frame = dataset[index]
     return frame, 1e3 * (time.perf_counter() - t0)
@@ -442,19 +694,23 @@ def _read(dataset: TumDataset, index: int) -> tuple[Frame, float]:
 
 def run_frames(
     slam: SLAM,
-    dataset: TumDataset,
+    dataset: RgbdDataset,
     indices: Iterable[int],
     on_result: Callable[[FrameResult], None] | None = None,
+    tally: RunTally | None = None,
+    guard: Callable[[], AbstractContextManager[object]] | None = None,
 ) -> RunSummary:
     """Feed `dataset[i]` for i in `indices` to `slam`; `on_result` sees every FrameResult as
-    it comes (write it out there: an interrupted run then keeps what it did). The next
-    frame is read on a second thread while this one is processed; the 'read' stage is the
-    reader's time, which overlaps processing."""
-    timings: list[dict[str, float]] = []
-    paths: dict[str, int] = {}
-    lost = keyframes = 0
+    it comes (write it out there: an interrupted run then keeps what it did), `tally` (when
+    given) the counts so far. Each frame is processed, counted and passed to `on_result`
+    inside `guard()` when given (an application's deferral of Ctrl-C: a frame is then
+    wholly done and reported, or not begun). The next frame is read on a second thread
+    while this one is processed; the 'read' stage is the reader's time, which overlaps
+    processing. A frame whose image cannot be read (FrameReadError) is skipped with a
+    warning; DatasetFormatError when no frame can be read."""
+    tally = RunTally() if tally is None else tally
+    tally.start = time.perf_counter()
     indices = list(indices)
-    start = time.perf_counter()
     # Frames are read (PNG decoding releases the GIL) one ahead on a second thread.
     try:
         with (
@@ -463,26 +719,27 @@ def run_frames(
         ):
             upcoming = [reader.submit(_read, dataset, indices[0])] if indices else []
             for k in range(len(indices)):
-                frame, read_ms = upcoming.pop().result()
+                future = upcoming.pop()
                 if k + 1 < len(indices):
                     upcoming.append(reader.submit(_read, dataset, indices[k + 1]))
-                result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
-                timings.append({"read": read_ms, **result.stage_ms})
-                paths[result.path.value] = paths.get(result.path.value, 0) + 1
-                lost += result.lost
-                keyframes += result.keyframe
-                if on_result is not None:
-                    on_result(result)
-        finish_ms = slam.finish()
+                try:
+                    frame, read_ms = future.result()
+                except FrameReadError as exc:
+                    tally.skipped_frames += 1
+                    logger.warning("frame %d skipped: %s", indices[k], exc)
+                    continue
+                with guard() if guard is not None else contextlib.nullcontext():
+                    result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
+                    tally.add(result, read_ms)
+                    if on_result is not None:
+                        on_result(result)
+        if indices and not tally.frame_timings:
+            raise DatasetFormatError(
+                f"{dataset.root}: none of the {len(indices)} frames could be read "
+                "(each was skipped: its images are missing or cannot be decoded)"
+            )
+        tally.finish_ms = slam.finish()
     except BaseException:  # interrupted or failed: stop the backend, keep the map as it is
         slam.close()
         raise
-    return RunSummary(
-        frames=len(timings),
-        seconds=time.perf_counter() - start,
-        lost_frames=lost,
-        keyframes=keyframes,
-        paths=paths,
-        frame_timings=timings,
-        finish_ms=finish_ms,
-    )
+    return tally.summary()

@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.corpus.tally import pytest_terminal_summary  # noqa: F401  (the fault corpus's figures)
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEQUENCES = ("7scenes_redkitchen_1000f", "tum_fr1_desk_9f", "tum_fr1_xyz_10f")
 
@@ -20,9 +22,16 @@ INTEGRATION_MODULES = frozenset(
         "test_baselines.py",  # open3d odometry on real data, the baseline suite in workers
         "test_bench.py",  # `planeslam bench`: front end over rendered sequences
         "test_cli.py",  # the CLI, in subprocesses, demo included
+        "test_examples.py",  # examples/ run as scripts: rendering, front end, SLAM
+        "test_faults_cli.py",  # the fault corpus through the CLI: signals, kills, full disks
+        "test_faults_runs.py",  # the fault corpus on whole runs
         "test_packaging.py",  # builds and installs a wheel
+        "test_run_config.py",  # `planeslam run` twice: the saved config repeats the run
+        "test_run_views.py",  # a short run, then its report, rerun recordings and mesh
         "test_slam.py",  # full SLAM runs, `planeslam run`
+        "test_tracking_runs.py",  # tracking on rendered and real sequences, whole runs
         "test_suite_command.py",  # `planeslam suite`
+        "test_suite_executors.py",  # the suite on a Dask LocalCluster of worker processes
     }
 )
 
@@ -45,9 +54,18 @@ INTEGRATION_TESTS = frozenset(
         # a whole loop through iSAM2; rendered frames -> front end -> factor graph
         "test_backend.py::test_isam2_beats_odometry_below_1cm",
         "test_backend.py::test_real_front_end_observations_on_rendered_frames",
+        # the fault corpus: whole SLAM runs on frames without depth or planes
+        "test_faults_inputs.py::test_frames_without_depth_or_planes_are_lost_with_a_reason",
         # slow: the demo's figure; the paper's 24-frame run through front end and map
         "test_frontend.py::test_demo_figure_box_found_and_sized",
         "test_map.py::test_true_pose_merge_of_box_room_circle_sizes_box_and_room",
+        # rendered frames -> front end -> the landmark layer's objects
+        "test_outside_stack.py::test_objects_from_the_landmark_layer_on_rendered_frames",
+        # the second depth model: the CLI, the front end and full SLAM on its renderings
+        "test_depth_models.py::test_synth_command_writes_the_rendering_it_was_asked_for",
+        "test_depth_models.py::test_front_end_finds_box_and_room_in_disparity_frames",
+        "test_depth_models.py::test_slam_on_the_disparity_rendering",
+        "test_depth_models.py::test_slam_on_the_independent_rendering_reaches_the_issue_target",
     }
 )
 

@@ -14,7 +14,6 @@ import pytest
 
 from planeslam.backend.base import KeyframeInput
 from planeslam.backend.config import BackendConfig
-from planeslam.backend.isam2 import _new_isam2
 from planeslam.backend.worker import Isam2Worker
 from planeslam.config import resolve_config
 from planeslam.core.errors import ConfigError, PlaneSlamError
@@ -22,6 +21,7 @@ from planeslam.eval.metrics import slam_run_metrics
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.factors.config import LandmarkKeys
 from planeslam.factors.landmarks import PlaneLandmarks
+from planeslam.factors.recovery import new_isam2
 from planeslam.frontend.pipeline import FrontEnd
 from planeslam.io.dataset import TumDataset
 from planeslam.sim.render import synthesize
@@ -154,8 +154,8 @@ def test_what_crosses_the_pipe_is_small_and_gives_the_same_factors(loop: Path) -
 
 def test_python_factors_get_isam2s_own_values_not_a_copy() -> None:
     """pybind11 copies a C++ Values into a new Python object for each call of a Python
-    factor unless one exists for it: `_new_isam2` keeps one, so no call copies the map."""
-    isam, theta = _new_isam2(gtsam.ISAM2Params())
+    factor unless one exists for it: `new_isam2` keeps one, so no call copies the map."""
+    isam, theta = new_isam2(gtsam.ISAM2Params())
     seen = []
 
     def error(this, values, H):

@@ -192,5 +192,5 @@ def test_suite_runs_jobs_in_workers_and_reports_failures(tmp_path: Path) -> None
     assert ok.error is None and ok.frames == 4 and ok.fps is not None and ok.fps > 0
     assert ok.ate_rmse_m is not None and ok.ate_rmse_m < 0.012
     assert (tmp_path / "out" / folder.name / "open3d_odometry" / "metrics.json").is_file()
-    assert failed.error is not None and "no_such_sequence: dataset folder not found" in failed.error
+    assert failed.error is not None and "no_such_sequence: dataset not found" in failed.error
     assert failed.ate_rmse_m is None

@@ -119,8 +119,9 @@ def test_missing_list_file(tmp_path: Path) -> None:
 def test_list_names_missing_image(tmp_path: Path) -> None:
     root = make_dataset(tmp_path / "seq")
     (root / "rgb" / "1.png").unlink()
+    dataset = TumDataset(root, CAM)  # a warning; the frame is skipped when a run reads it
     with pytest.raises(DatasetFormatError, match=r"rgb/1.png: image listed but not found"):
-        TumDataset(root, CAM)
+        dataset[1]
 
 
 def test_malformed_list_row(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import subprocess
@@ -239,11 +240,13 @@ def test_write_evaluation_and_report(tum_pair: tuple[Path, Path], tmp_path: Path
         run_metrics(frames=10, seconds=2.0, frame_timings=[{"seg": 5.0}] * 10), out / "metrics.json"
     )
     page = write_report(out).read_text()
-    for name in ("trajectory.png", "ate_over_time.png", "overlay.png"):
-        assert f'src="{name}"' in page
-    assert str(tmp_path) not in page  # relative links only: the folder can move
+    for name in ("trajectory.png", "ate_over_time.png", "overlay.png"):  # embedded, not linked
+        data = base64.b64encode((out / name).read_bytes()).decode("ascii")
+        assert f'src="data:image/png;base64,{data}"' in page
+    assert str(tmp_path) not in page  # nothing outside the page: it can be moved alone
     assert f"{ev.ate_rmse_m:.4f}" in page
-    assert "frames per second" in page and "5.0000" in page and "seg" in page
+    assert "<th>frames per second</th><td>5.0</td><td>Hz</td>" in page
+    assert "<th>seg</th><td>5.0</td><td>ms</td>" in page
 
 
 def test_report_needs_something_to_show(tmp_path: Path) -> None:

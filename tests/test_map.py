@@ -237,7 +237,7 @@ def test_new_plane_ids_are_monotonic_and_pairs_beyond_the_gate_make_new_planes()
     obs = observation(
         [make_plane(0, rect_points(np.array([0, 0, 2.0]), np.eye(3)[0], np.eye(3)[1]))]
     )
-    m = Map(MapConfig(merge_max_angle_deg=10))
+    m = Map(MapConfig(merge_max_angle_deg=10, consolidate=False))  # same plane, new ids
     assert m.merge(obs, np.eye(4)).planes == {0: 0}
     T = np.eye(4)
     T[:3, :3] = pose_from_quat(np.zeros(3), [np.sin(0.2), 0, 0, np.cos(0.2)])[:3, :3]  # 23 deg
@@ -569,19 +569,19 @@ def test_sparse_cloud_averages_per_voxel_and_keeps_the_best_supported_when_cappe
         m.add_sparse_points(np.zeros((3, 2)))
 
 
-def test_write_ply_is_readable_by_open3d_with_object_colours(tmp_path, rng):
+def test_ply_files_are_readable_by_open3d_and_survive_cleaning(tmp_path, rng):
+    """map_planes.ply is a mesh whose every vertex is on a face (cleaning keeps it whole),
+    coloured by object; map_points.ply is the sparse cloud alone."""
     o3d = pytest.importorskip("open3d")
     m = Map()
     scene_to_map = merge_scene_views(m)
     m.add_sparse_points(rng.uniform(-1, 1, (200, 3)) * [0.9, 0.9, 0.5] + [0, 0, 0.55])
-    path = m.write_ply(tmp_path / "map.ply")
-    mesh = o3d.io.read_triangle_mesh(str(path))
+    mesh = o3d.io.read_triangle_mesh(str(m.write_planes_ply(tmp_path / "map_planes.ply")))
     ring_sizes = [len(p.outline) for p in m.planes.values()]
-    num_sparse = len(m.sparse_points)
-    assert len(mesh.vertices) == sum(ring_sizes) + len(ring_sizes) + num_sparse
+    assert len(mesh.vertices) == sum(ring_sizes) + len(ring_sizes)
     assert len(mesh.triangles) == sum(ring_sizes)
-    cloud = o3d.io.read_point_cloud(str(path))
-    assert len(cloud.points) == len(mesh.vertices)
+    cleaned = o3d.geometry.TriangleMesh(mesh).remove_unreferenced_vertices()
+    assert len(cleaned.vertices) == len(mesh.vertices)
     colors = np.asarray(mesh.vertex_colors)
     first = np.cumsum([0] + [r + 1 for r in ring_sizes])[:-1]
     plane_colors = {pid: colors[first[k]] for k, pid in enumerate(m.planes)}
@@ -589,7 +589,10 @@ def test_write_ply_is_readable_by_open3d_with_object_colours(tmp_path, rng):
     room = [plane_colors[scene_to_map[s]] for s in range(6)]  # floor goes to the room
     assert all(np.allclose(c, box[0]) for c in box) and all(np.allclose(c, room[0]) for c in room)
     assert not np.allclose(box[0], room[0])
-    np.testing.assert_allclose(np.asarray(cloud.points)[-num_sparse:], m.sparse_points, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(mesh.vertices), m.plane_mesh().vertices, atol=1e-6)
+    cloud = o3d.io.read_point_cloud(str(m.write_points_ply(tmp_path / "map_points.ply")))
+    np.testing.assert_allclose(np.asarray(cloud.points), m.sparse_points, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(cloud.colors) * 255, m.sparse_colors, atol=0.5)
 
 
 def top_level_value_bytes(text: str) -> dict[str, int]:

@@ -84,8 +84,9 @@ def test_keyframes_far_apart_still_track(loop: Path) -> None:
 def test_run_writes_every_output(box_room: Path, tmp_path: Path) -> None:
     result = run_sequence(box_room, tmp_path / "out", backend="merge", max_frames=6)
     out = result.out_dir
-    for name in ("config.yaml", "trajectory.txt", "frames.jsonl", "map.json", "map.ply",
-                 "metrics.json", "eval.json", "report.html", "trajectory.png"):  # fmt: skip
+    for name in ("config.yaml", "run.json", "trajectory.txt", "frames.jsonl", "map.json",
+                 "map_planes.ply", "map_points.ply", "metrics.json", "eval.json", "report.html",
+                 "trajectory.png", "map.png"):  # fmt: skip
         assert (out / name).is_file(), name
     assert len(read_tum(out / "trajectory.txt")) == 6
     metrics = json.loads((out / "metrics.json").read_text())
@@ -127,7 +128,7 @@ def test_process_needs_no_dataset(box_room: Path) -> None:
     assert first.keyframe and first.path == "first"
     assert not second.lost
     assert len(slam.trajectory()) == 2
-    with pytest.raises(DatasetFormatError, match="depth image is"):
+    with pytest.raises(DatasetFormatError, match=r"depth_m has shape \(10, 10\), expected"):
         slam.process(np.zeros((10, 10), np.float32), 2.0)
 
 

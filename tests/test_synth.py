@@ -310,7 +310,7 @@ def test_texture_and_depth_move_with_the_scene() -> None:
     moved = make_scene(
         "moved",
         tuple(replace(b, centre=b.centre + shift) for b in scene.boxes),
-        texture_seed=1,
+        texture=1,
     )
     T = traj.T_world_cam[1]
     T_moved = T.copy()

@@ -1,5 +1,6 @@
-"""Frame-to-map tracking: closed form under a prediction, relocalisation from corner
-hypotheses without any prediction, and the lost path."""
+"""Frame-to-map tracking: closed form under a prediction, whole-map relocalisation from
+corner, plane-triple and edge hypotheses without any prediction (and its refusals:
+too little support, an ambiguous map, a stale prediction), and the lost path."""
 
 from __future__ import annotations
 
@@ -9,7 +10,9 @@ from helpers import assert_pose_close
 
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import invert_pose, pose_from_quat, transform_plane
+from planeslam.tracking import hypotheses
 from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.relocalise import primitive_hypotheses
 from planeslam.tracking.tracker import FrameView, MapView, Tracker
 
 # A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
@@ -112,7 +115,7 @@ def test_far_prediction_relocalises_from_corners(rng: np.random.Generator) -> No
     frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
     tracker = Tracker(TrackingConfig())
     assert tracker.register(frame, map_view(), perturb(T, 1.0, 60.0)) is None
-    assert len(tracker.hypotheses(frame, map_view())) >= 2
+    assert len(primitive_hypotheses(frame, map_view(), TrackingConfig())) >= 2
     result = tracker._track(frame, map_view(), perturb(T, 1.0, 60.0), None, None)
     assert result.path == "relocalised"
     assert_pose_close(result.T_world_cam, T, 1e-6, 1e-4)
@@ -152,3 +155,164 @@ def test_empty_map_starts_it(rng: np.random.Generator) -> None:
 def test_config_rejects_bad_values(key: str, value: float) -> None:
     with pytest.raises(ConfigError, match=f"tracking.{key}"):
         TrackingConfig(**{key: value})
+
+
+# Real intersections of the map above (row indices into NORMALS), world frame: the room's
+# three concave edges from its corner, the box's three convex edges from its corner.
+EDGES = np.array([[0, 1], [0, 2], [1, 2], [3, 4], [3, 5], [4, 5]])
+EDGE_SEGMENTS = np.array(
+    [
+        [[0.0, 0.0, 0.0], [0.0, 2.0, 0.0]],
+        [[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]],
+        [[0.0, 0.0, 0.0], [0.0, 0.0, 1.2]],
+        [[1.0, 0.5, 0.2], [1.0, 0.8, 0.2]],
+        [[0.6, 0.8, 0.2], [1.0, 0.8, 0.2]],
+        [[1.0, 0.8, 0.0], [1.0, 0.8, 0.2]],
+    ]
+)
+EDGE_CONVEX = np.array([False, False, False, True, True, True])
+
+
+def map_view_with_edges() -> MapView:
+    base = map_view()
+    lengths = np.linalg.norm(EDGE_SEGMENTS[:, 1] - EDGE_SEGMENTS[:, 0], axis=1)
+    return MapView(
+        base.plane_ids,
+        base.normals,
+        base.d,
+        base.corner_ids,
+        base.corner_planes,
+        base.corner_points,
+        edge_planes=EDGES,
+        edge_segments=EDGE_SEGMENTS,
+        edge_lengths=lengths,
+        edge_angles=np.full(len(EDGES), np.pi / 2),
+        edge_convex=EDGE_CONVEX,
+    )
+
+
+def with_edges(frame: FrameView, T_world_cam: np.ndarray, planes: list[int]) -> FrameView:
+    """`frame` (planes `planes` seen from T_world_cam) with the map edges whose two planes
+    it sees, both ends real."""
+    row = {j: k for k, j in enumerate(planes)}
+    seen = [k for k, (a, b) in enumerate(EDGES) if a in row and b in row]
+    T_cam_world = invert_pose(T_world_cam)
+    segments = EDGE_SEGMENTS[seen] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    return FrameView(
+        frame.plane_ids,
+        frame.normals,
+        frame.d,
+        frame.weights,
+        frame.corner_planes,
+        frame.corner_points,
+        edge_planes=np.array([[row[a], row[b]] for a, b in EDGES[seen]]).reshape(-1, 2),
+        edge_segments=segments.reshape(-1, 2, 3),
+        edge_lengths=np.linalg.norm(segments[:, 1] - segments[:, 0], axis=1),
+        edge_angles=np.full(len(seen), np.pi / 2),
+        edge_convex=EDGE_CONVEX[seen],
+        edge_real_ends=np.ones((len(seen), 2), dtype=bool),
+    )
+
+
+def test_two_planes_and_an_edge_give_the_pose(rng: np.random.Generator) -> None:
+    """Floor, the wall x = 0, the box top and the box side x = 1: only two normal
+    directions, so no corner and no plane triple; the edges (their ends along the line)
+    give the pose, and the edge ends fill the direction the planes leave free."""
+    T = camera_pose()
+    planes = [0, 1, 3, 4]
+    frame = with_edges(observe(T, planes, rng), T, planes)
+    view = map_view_with_edges()
+    gate = np.radians(10.0)
+    assert not len(hypotheses.corner_hypotheses(frame, view, gate))
+    assert not len(hypotheses.triple_hypotheses(frame, view, gate, 10, 24))
+    found = hypotheses.edge_hypotheses(frame, view, gate, 1.2)
+    errors = [
+        np.linalg.norm(h[:3, 3] - T[:3, 3]) + np.linalg.norm(h[:3, :3] - T[:3, :3]) for h in found
+    ]
+    assert min(errors) < 1e-9
+    scores = hypotheses.score_hypotheses(frame, view, found, gate, 0.1, 0.25)
+    assert_pose_close(found[int(np.argmax(scores))], T, 1e-9, 1e-6)
+    solved = Tracker(TrackingConfig()).joint(
+        frame, view, found[int(np.argmax(scores))], None, _no_matches()
+    )
+    assert solved is not None
+    assert (solved.constraints.plane_rotation_dof, solved.constraints.plane_translation_dof) == (
+        3,
+        2,
+    )
+    assert [str(p) for p in solved.constraints.filled_by] == ["lines"]
+    assert_pose_close(solved.T, T, 1e-6, 1e-4)
+
+
+def _no_matches():
+    from planeslam.tracking.keypoints import PointMatches
+
+    return PointMatches.empty()
+
+
+def test_symmetric_room_is_ambiguous_until_the_box_is_seen(rng: np.random.Generator) -> None:
+    """A square room seen as floor + two walls + their corner fits at each of its four
+    corners equally: relocalisation refuses it. The box's planes tell the corners apart."""
+    square_n = np.array(
+        [
+            [0, 0, 1.0],
+            [1.0, 0, 0],
+            [0, 1.0, 0],
+            [-1.0, 0, 0],
+            [0, -1.0, 0],
+            [0, 0, 1.0],
+            [1.0, 0, 0],
+            [0, 1.0, 0],
+        ]
+    )
+    square_d = np.array([0.0, 0.0, 0.0, 3.0, 3.0, -0.2, -1.0, -0.8])
+    corners = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1], [5, 6, 7]])
+    points = np.array([[0, 0, 0], [3.0, 0, 0], [3.0, 3.0, 0], [0, 3.0, 0], [1.0, 0.8, 0.2]])
+    view = MapView(np.arange(8), square_n, square_d, np.arange(5), corners, points)
+    T = camera_pose()
+    T_cam_world = invert_pose(T)
+
+    def seen(rows: list[int]) -> FrameView:
+        n, d = [], []
+        for j in rows:
+            nc, dc = transform_plane(T_cam_world, square_n[j], square_d[j])
+            n.append(nc if dc > 0 else -nc)
+            d.append(abs(dc))
+        row = {j: k for k, j in enumerate(rows)}
+        ks = [k for k, c in enumerate(corners) if all(j in row for j in c)]
+        p = points[ks] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        return FrameView(
+            np.arange(len(rows)),
+            np.array(n),
+            np.array(d),
+            np.ones(len(rows)),
+            np.array([[row[j] for j in corners[k]] for k in ks]).reshape(-1, 3),
+            p.reshape(-1, 3),
+        )
+
+    tracker = Tracker(TrackingConfig(relocalise_min_planes=3))
+    far = perturb(T, 1.0, 60.0)
+    assert tracker.relocalise(seen([0, 1, 2]), view, far) is None
+    solved = tracker.relocalise(seen([0, 1, 2, 5, 6, 7]), view, far)
+    assert solved is not None
+    assert_pose_close(solved.T, T, 1e-6, 1e-4)
+
+
+def test_after_a_loss_a_plane_fit_to_the_stale_prediction_is_not_taken(
+    rng: np.random.Generator,
+) -> None:
+    """A plane pose near the prediction is taken while tracking; once tracking was lost (or
+    in a loaded map) the prediction proves nothing, so only corroborated poses count: here
+    the whole-map relocalisation (corners and triples, verified against all six planes)."""
+    T = camera_pose()
+    tracker = Tracker(TrackingConfig(relocalise=False, icp=False, rgbd_odometry=False))
+    frame = observe(T, list(range(6)), rng)
+    near = perturb(T, 0.02, 1.0)
+    assert tracker._track(frame, map_view(), near, None, None).path == "planes"
+    tracker.expect_jump()
+    assert tracker._track(frame, map_view(), near, None, None).lost
+    tracker = Tracker(TrackingConfig())
+    tracker.expect_jump()
+    result = tracker._track(frame, map_view(), near, None, None)
+    assert result.path == "relocalised"
+    assert result.constraints is not None and result.constraints.planes_full

@@ -51,7 +51,7 @@ def test_writer_keeps_rows_written_before_an_interruption(tmp_path: Path) -> Non
         ("# only a comment\n", "no poses"),
         ("1.0 0 0 0 0 0 0\n", r":1: expected 8 numbers"),
         ("1.0 0 0 0 0 0 0 1\n2.0 0 0 x 0 0 0 1\n", r":2: expected 8 numbers"),
-        ("1.0 0 0 0 0 0 0 0\n", "zero quaternion"),
+        ("1.0 0 0 0 0 0 0 0\n", r":1: quaternion qx qy qz qw has norm 0, expected a unit"),
     ],
 )
 def test_malformed_files(tmp_path: Path, text: str, expected: str) -> None:

@@ -21,12 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from planeslam.config import PlaneSlamConfig, resolve_config
+from planeslam.config import ConfigLayer, PlaneSlamConfig, resolve_config
 from planeslam.core.camera import PixelRays
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.frontend.cloud import organized_cloud
 from planeslam.frontend.pipeline import FrontEnd
-from planeslam.io.dataset import TumDataset
+from planeslam.io.sequence import open_dataset
 
 log = logging.getLogger(__name__)
 
@@ -354,15 +354,16 @@ def bench_frontend(
     dataset_dir: str | Path | None = None,
     frames: int = 30,
     config: str | Path | None = None,
-    camera: str | None = None,
+    camera: str | ConfigLayer | None = None,
     cores: int | None = 1,
     progress: bool = False,
     reference_frames: int = 3,
     cache_dir: str | Path | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
 ) -> BenchResult:
     """Time the front end per stage with both segmenters and Open3D's segment_plane.
 
-    dataset_dir: TUM-layout folder; None renders SYNTH_SCENE once into `cache_dir`
+    dataset_dir: TUM-layout folder or ROS bag; None renders SYNTH_SCENE once into `cache_dir`
     (default `default_cache_dir()`). `frames` frames evenly spread over the
     sequence are loaded into memory first (cycled when the sequence is shorter).
     `cores` pins the process to that many of its allowed cores (None: no pinning).
@@ -375,8 +376,9 @@ def bench_frontend(
         raise ConfigError(f"bench: reference_frames must be >= 0, got {reference_frames}")
     cache = None if cache_dir is None else Path(cache_dir)
     folder = Path(dataset_dir) if dataset_dir is not None else synthetic_dataset(cache)
-    cfg = resolve_config(folder, config, camera)
-    dataset = TumDataset(folder, cfg.camera, cfg.dataset)
+    cfg = resolve_config(folder, config, camera, overrides)
+    dataset = open_dataset(folder, cfg.camera, cfg.dataset)
+    cfg = dataclasses.replace(cfg, camera=dataset.camera)  # a bag's camera_info applied
     if len(dataset) == 0:
         raise DatasetFormatError(f"{folder}: no frames")
     distinct = min(frames, len(dataset))

@@ -1,18 +1,32 @@
 """The `planeslam` command: argument parsing plus one library call per sub-command.
 
-Any PlaneSlamError becomes a one-line message on stderr and exit code 2;
-Ctrl-C keeps what was already written and exits with 130.
+Any PlaneSlamError or operating-system error (an unwritable folder, a full disk) becomes a
+one-line message on stderr and exit code 2; Ctrl-C keeps what was already written and
+exits with 130, SIGTERM and SIGHUP likewise with 143 and 129.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from planeslam import __version__
+from planeslam.app.config_command import (
+    add_config_command,
+    add_override_option,
+    camera_option,
+    override_layers,
+)
+from planeslam.app.dataset_options import TopicOverrides, add_topic_options
+from planeslam.app.download import add_download_command
+from planeslam.app.relocalise_command import add_relocalise_command
+from planeslam.app.signals import Terminated, stop_signals_interrupt
+from planeslam.app.synth_command import add_synth_command
+from planeslam.app.view_commands import add_mesh_command, add_view_command, add_viewer_options
 from planeslam.core.errors import PlaneSlamError
 from planeslam.core.native_tuning import keep_freed_memory
 
@@ -23,16 +37,19 @@ def _common_options(defaults: bool) -> argparse.ArgumentParser:
     """-v / -q, accepted before and after the sub-command (after it, an absent flag leaves
     what was given before it)."""
     p = argparse.ArgumentParser(add_help=False)
-    unset = {} if defaults else {"default": argparse.SUPPRESS}
     p.add_argument(
-        "-v", "--verbose", action="count", help="more log output", **({"default": 0} | unset)
+        "-v",
+        "--verbose",
+        action="count",
+        help="more log output",
+        default=0 if defaults else argparse.SUPPRESS,
     )
     p.add_argument(
         "-q",
         "--quiet",
         action="store_true",
         help="only warnings and errors, no progress bars",
-        **unset,
+        default=False if defaults else argparse.SUPPRESS,
     )
     return p
 
@@ -45,31 +62,6 @@ def _command(
 ) -> argparse.ArgumentParser:
     """A sub-command parser that also takes the global -v / -q."""
     return sub.add_parser(name, parents=[_SUBCOMMAND_OPTIONS], **kwargs)  # type: ignore[arg-type]
-
-
-def _add_synth(sub: argparse._SubParsersAction) -> None:
-    from planeslam.sim.render import SCENES
-
-    p = _command(
-        sub,
-        "synth",
-        help="render a synthetic RGB-D sequence with exact truth",
-        description="Render a synthetic RGB-D sequence in the TUM layout, with camera.yaml "
-        "and truth.json (planes, edges, corners, objects and their sizes, trajectory).",
-    )
-    p.add_argument("scene", choices=sorted(SCENES), help="scene to render")
-    p.add_argument("outdir", type=Path, help="output folder (created)")
-    p.add_argument("--frames", type=int, default=None, help="number of frames (default: scene's)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
-    p.set_defaults(func=_cmd_synth)
-
-
-def _cmd_synth(args: argparse.Namespace) -> int:
-    from planeslam.sim.render import synthesize
-
-    result = synthesize(args.scene, args.outdir, frames=args.frames, seed=args.seed)
-    print(f"wrote {result.num_frames} frames of '{result.scene_name}' to {result.out_dir}")
-    return 0
 
 
 def _add_demo(sub: argparse._SubParsersAction) -> None:
@@ -138,6 +130,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _add_dataset_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
     p.add_argument("--camera", default=None, help="intrinsics override 'fx,fy,cx,cy[,depth_scale]'")
+    add_override_option(p)
 
 
 def _add_run(sub: argparse._SubParsersAction) -> None:
@@ -146,14 +139,21 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p = _command(
         sub,
         "run",
-        help="full SLAM on a TUM-layout sequence (trajectory, map, metrics, evaluation)",
-        description="Run SLAM on a dataset folder (TUM layout). Writes trajectory.txt (row by "
-        "row as frames are tracked, final poses at the end), frames.jsonl, map.json, map.ply, "
-        "config.yaml, metrics.json and, when groundtruth.txt exists, eval.json, plots and "
+        help="full SLAM on a TUM-layout folder or a ROS bag (trajectory, map, metrics, evaluation)",
+        description="Run SLAM on a dataset: a TUM-layout folder, a ROS 1 .bag or a ROS 2 bag "
+        "folder (sqlite3 or mcap; colour, depth and camera_info topics, TUM's names by "
+        "default; ground truth from a TUM file beside the bag or /tf). Writes trajectory.txt "
+        "(row by row as frames are tracked, final poses at the end), frames.jsonl, map.json, "
+        "map.ply, config.yaml, metrics.json and, with ground truth, eval.json, plots and "
         "report.html. Ctrl-C stops and keeps everything computed so far.",
     )
-    p.add_argument("dataset", type=Path, help="dataset folder (rgb/, depth/, rgb.txt, depth.txt)")
+    p.add_argument(
+        "dataset",
+        type=Path,
+        help="TUM-layout folder (rgb/, depth/, rgb.txt, depth.txt), ROS 1 .bag or ROS 2 bag folder",
+    )
     _add_dataset_options(p)
+    add_topic_options(p)
     p.add_argument("--out", type=Path, default=None, help="output folder (default out/<name>)")
     p.add_argument(
         "--backend",
@@ -164,24 +164,43 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-frames", type=int, default=None, help="process at most N frames")
     p.add_argument("--every", type=int, default=None, help="use every K-th frame (default 1)")
     p.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
+    p.add_argument(
+        "--start-pose",
+        choices=("groundtruth", "identity"),
+        default=None,
+        help="first frame's pose, which fixes the world frame: groundtruth (default: its "
+        "ground-truth pose when the dataset has one, else the identity) or identity",
+    )
+    p.add_argument("--map", type=Path, default=None, help="map.json to track in (relocalised)")
+    p.add_argument("--localize", action="store_true", help="with --map: leave the map unchanged")
+    add_viewer_options(p)
     p.set_defaults(func=_cmd_run)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from planeslam.app.runner import run_sequence
+    from planeslam.app.view_commands import viewer_from_args
 
     out = args.out if args.out is not None else Path("out") / args.dataset.name
-    result = run_sequence(
-        args.dataset,
-        out,
-        args.config,
-        args.camera,
-        args.backend,
-        args.max_frames,
-        args.every,
-        progress=not args.quiet,
-        seed=args.seed,
-    )
+    with viewer_from_args(args, args.dataset.name) as viewer:
+        result = run_sequence(
+            args.dataset,
+            out,
+            args.config,
+            camera_option(args),
+            args.backend,
+            args.max_frames,
+            args.every,
+            progress=not args.quiet,
+            seed=args.seed,
+            observer=viewer,
+            command=args.command_line,
+            topics=TopicOverrides.from_args(args),
+            overrides=override_layers(args),
+            start_pose=args.start_pose,
+            map_path=args.map,
+            localize=args.localize,
+        )
     print(result.text())
     return 0
 
@@ -195,9 +214,10 @@ def _add_frame(sub: argparse._SubParsersAction) -> None:
         "trihedral corners, objects with classes and sizes) on frame INDEX of a dataset and "
         "write frame.json (camera frame) and overlay.png.",
     )
-    p.add_argument("dataset", type=Path, help="dataset folder (TUM layout)")
+    p.add_argument("dataset", type=Path, help="TUM-layout folder, ROS 1 .bag or ROS 2 bag folder")
     p.add_argument("index", type=int, help="frame index (0-based, in association order)")
     _add_dataset_options(p)
+    add_topic_options(p)
     p.add_argument("--out", type=Path, default=None, help="output folder (default out/frame)")
     p.set_defaults(func=_cmd_frame)
 
@@ -206,7 +226,15 @@ def _cmd_frame(args: argparse.Namespace) -> int:
     from planeslam.app.frame import process_frame
 
     out = args.out if args.out is not None else Path("out") / "frame"
-    result = process_frame(args.dataset, args.index, args.config, args.camera, out)
+    result = process_frame(
+        args.dataset,
+        args.index,
+        args.config,
+        camera_option(args),
+        out,
+        topics=TopicOverrides.from_args(args),
+        overrides=override_layers(args),
+    )
     print(result.summary())
     return 0
 
@@ -239,9 +267,10 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "suite",
         help="run methods on sequences; one table (markdown + CSV)",
         description="Run every method of a suite on every sequence (one at a time by "
-        "default, --jobs N at once) and print one table: ATE, RPE, fps, memory ratio, object size "
-        "error. Default suite: the synthetic scenes plus ../shared/data when present, with "
-        "Open3D RGB-D odometry, the paper's merging and the iSAM2 backend.",
+        "default, --jobs N at once, or on a Dask cluster with --executor dask) and print "
+        "one table: ATE, RPE, fps, memory ratio, object size error. Default suite: the "
+        "synthetic scenes plus ../shared/data when present, with Open3D RGB-D odometry, "
+        "the paper's merging and the iSAM2 backend.",
     )
     s.add_argument("suite", type=Path, nargs="?", default=None, help="suite YAML")
     s.add_argument(
@@ -251,7 +280,35 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         help="runs at once (default 1: fps figures need the machine to themselves)",
     )
     s.add_argument("--out", type=Path, default=Path("out/suite"), help="output folder")
+    s.add_argument(
+        "--executor",
+        choices=("local", "dask"),
+        default=None,
+        help="where jobs run: local (default) or dask (a Dask distributed cluster)",
+    )
+    s.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="Dask scheduler address, e.g. tcp://host:8786 (default with --executor dask: "
+        "a LocalCluster of --jobs workers on this machine)",
+    )
     s.set_defaults(func=_cmd_bench_suite)
+    long = _command(
+        bench,
+        "long",
+        help="long sequences that revisit: fps, backend, landmarks and memory per block",
+        description="Replay a sequence in passes (forward, backward, forward, ...: the camera "
+        "revisits what it mapped) and report per block of frames the fps, the iSAM2 update "
+        "time, the plane landmarks and the resident memory of both processes, then the ATE. "
+        "SOURCE: a TUM folder with associations.txt and groundtruth.txt, or a synthetic scene.",
+    )
+    long.add_argument("source", help="dataset folder or synthetic scene name")
+    long.add_argument("--passes", type=int, default=5, help="passes over the sequence (default 5)")
+    long.add_argument("--block", type=int, default=1000, help="frames per block (default 1000)")
+    long.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
+    long.add_argument("--out", type=Path, default=Path("out/long"), help="output folder")
+    long.set_defaults(func=_cmd_bench_long)
 
 
 def _cmd_bench_frontend(args: argparse.Namespace) -> int:
@@ -263,29 +320,52 @@ def _cmd_bench_frontend(args: argparse.Namespace) -> int:
         args.dataset,
         frames=args.frames,
         config=args.config,
-        camera=args.camera,
+        camera=camera_option(args),
         progress=not (args.json or args.quiet) and sys.stderr.isatty(),
         reference_frames=args.reference_frames,
+        overrides=override_layers(args),
     )
     print(json.dumps(result.to_dict(), indent=2) if args.json else result.to_text())
+    return 0
+
+
+def _cmd_bench_long(args: argparse.Namespace) -> int:
+    from planeslam.app.bench_long import bench_long
+
+    result = bench_long(
+        args.source, args.out, args.passes, args.block, args.config, progress=not args.quiet
+    )
+    print(result.to_text())
     return 0
 
 
 def _cmd_bench_suite(args: argparse.Namespace) -> int:
     from planeslam.app.suite import run_suite_command
 
-    table = run_suite_command(args.suite, args.out, jobs=args.jobs, progress=not args.quiet)
+    table = run_suite_command(
+        args.suite,
+        args.out,
+        jobs=args.jobs,
+        progress=not args.quiet,
+        executor=args.executor,
+        scheduler=args.scheduler,
+    )
     print(table)
     return 0
 
 
 COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
-    _add_synth,
+    add_synth_command,
     _add_demo,
     _add_eval,
     _add_run,
     _add_frame,
     _add_bench,
+    add_view_command,
+    add_mesh_command,
+    add_config_command,
+    add_download_command,
+    add_relocalise_command,
 ]
 
 
@@ -306,17 +386,35 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.command_line = shlex.join(["planeslam", *(sys.argv[1:] if argv is None else argv)])
     level = logging.WARNING if args.quiet else (logging.DEBUG if args.verbose else logging.INFO)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     keep_freed_memory()  # the application's choice: about 15 % faster front end
     try:
-        return int(args.func(args) or 0)
+        with stop_signals_interrupt():  # SIGTERM / SIGHUP stop a command as Ctrl-C does
+            return int(args.func(args) or 0)
     except PlaneSlamError as exc:
         print(f"planeslam: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an unwritable --out, a full disk, an unreadable file
+        print(f"planeslam: error: {os_error_text(exc)}", file=sys.stderr)
+        return 2
+    except Terminated as exc:
+        print(f"planeslam: stopped by {exc}; outputs written so far are kept", file=sys.stderr)
+        return exc.exit_code
     except KeyboardInterrupt:
         print("planeslam: interrupted; outputs written so far are kept", file=sys.stderr)
         return 130
+
+
+def os_error_text(exc: OSError) -> str:
+    """'PATH: reason' for an operating-system error (one line, no traceback)."""
+    reason = exc.strerror or str(exc)
+    if exc.filename is None:
+        return reason
+    if exc.filename2 is not None:
+        return f"{exc.filename} -> {exc.filename2}: {reason}"
+    return f"{exc.filename}: {reason}"
 
 
 if __name__ == "__main__":

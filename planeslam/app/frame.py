@@ -4,17 +4,20 @@ config.yaml."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from planeslam.app.dataset_options import TopicOverrides
 from planeslam.app.overlay import draw_overlay, format_size, write_png
-from planeslam.config import resolve_config
+from planeslam.config import ConfigLayer, resolve_config
 from planeslam.core.config import save_yaml
 from planeslam.core.errors import DatasetFormatError
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
-from planeslam.io.dataset import TumDataset
+from planeslam.io.sequence import open_dataset
 
 log = logging.getLogger(__name__)
 
@@ -59,21 +62,27 @@ def process_frame(
     dataset_dir: str | Path,
     index: int,
     config: str | Path | None = None,
-    camera: str | None = None,
+    camera: str | ConfigLayer | None = None,
     out_dir: str | Path = Path("out/frame"),
     seed: int = 0,
+    topics: TopicOverrides | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
 ) -> FrameResult:
-    """Front end on frame `index` of a TUM-layout dataset -> files in `out_dir`.
+    """Front end on frame `index` of a dataset (TUM folder or ROS bag) -> files in `out_dir`.
 
     `config` is a preset name or YAML path and `camera` a 'fx,fy,cx,cy[,depth_scale]'
-    override, resolved by `planeslam.config.resolve_config`. Writes frame.json
+    override, resolved with the `overrides` ('section.key=value') by
+    `planeslam.config.resolve_config`. Writes frame.json
     (camera frame, metres), overlay.png and config.yaml. DatasetFormatError when
-    `index` is outside 0..len-1.
+    `index` is outside 0..len-1. `topics` chooses a bag's topics.
     """
     dataset_dir = Path(dataset_dir)
     out_dir = Path(out_dir)
-    cfg = resolve_config(dataset_dir, config, camera)
-    dataset = TumDataset(dataset_dir, cfg.camera, cfg.dataset)
+    cfg = resolve_config(dataset_dir, config, camera, overrides)
+    if topics is not None:
+        cfg = topics.apply(cfg)
+    dataset = open_dataset(dataset_dir, cfg.camera, cfg.dataset)
+    cfg = dataclasses.replace(cfg, camera=dataset.camera)  # a bag's camera_info applied
     if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(dataset):
         raise DatasetFormatError(
             f"{dataset_dir}: frame index {index!r} out of range; valid 0..{len(dataset) - 1} "

@@ -196,6 +196,15 @@ def summary_line(observation: Any) -> str:
     return f"{text}: {reason}" if reason else text
 
 
+def tint_planes(rgb: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 RGB with every pixel of plane k (labels (H, W), -1 off planes)
+    blended with PALETTE[k % 20] at PLANE_ALPHA; a new image."""
+    on_plane = labels >= 0
+    tint = PALETTE[np.where(on_plane, labels, 0) % len(PALETTE)]
+    blended = (1.0 - PLANE_ALPHA) * rgb + PLANE_ALPHA * tint
+    return np.where(on_plane[..., None], np.rint(blended), rgb).astype(np.uint8)
+
+
 def draw_overlay(
     rgb: np.ndarray, observation: Any, camera: CameraConfig, legend: bool = True
 ) -> np.ndarray:
@@ -220,10 +229,7 @@ def draw_overlay(
     scale = max(0.35, 0.5 * image.shape[1] / 640.0)
     width = max(2, int(round(2 * image.shape[1] / 640.0)))
 
-    on_plane = labels >= 0
-    tint = PALETTE[np.where(on_plane, labels, 0) % len(PALETTE)]
-    blended = (1.0 - PLANE_ALPHA) * image + PLANE_ALPHA * tint
-    out = np.where(on_plane[..., None], np.rint(blended), image).astype(np.uint8)
+    out = tint_planes(image, labels)
 
     # Outlines and id tags per plane, from the pixel masks (what the tint shows).
     for plane in seg.planes:

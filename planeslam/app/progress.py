@@ -3,7 +3,7 @@ takes a callback, and the application passes `bar.step` here."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -34,3 +34,29 @@ def progress_bar(total: int, desc: str, unit: str, enabled: bool = True) -> Iter
         yield ProgressBar(bar)
     finally:
         bar.close()
+
+
+@contextmanager
+def byte_progress(desc: str, enabled: bool = True) -> Iterator[Callable[[int, int | None], None]]:
+    """A bar over a transfer: yields `update(bytes so far, total bytes or None)`, the
+    callback library downloads take; closed when the block ends (also on Ctrl-C)."""
+    if not enabled:
+        yield lambda done, total: None
+        return
+    from tqdm import tqdm
+
+    bars: list[Any] = []  # made on the first update: nothing shows when nothing is fetched
+
+    def update(done: int, total: int | None) -> None:
+        if not bars:
+            bars.append(tqdm(desc=desc, unit="B", unit_scale=True, unit_divisor=1024))
+        bar = bars[0]
+        if total is not None and bar.total != total:
+            bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        yield update
+    finally:
+        for bar in bars:
+            bar.close()

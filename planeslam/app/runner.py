@@ -1,15 +1,23 @@
-"""`planeslam run`: SLAM over a dataset folder with every output written as it is produced.
+"""`planeslam run`: SLAM over a dataset (TUM folder or ROS bag) with every output written as it
+is produced.
 
 Output folder:
 - config.yaml      the resolved configuration (written first);
 - trajectory.txt   TUM poses, one row per frame as it is tracked (an interrupted run keeps
                    them), rewritten at the end with the optimised poses;
 - frames.jsonl     one record per frame: tracking path, reason, keyframe, stage ms;
-- map.json         the plane-object map (schema planeslam.map/1, world frame), map.ply;
+- run.json         dataset path, backend, command line, version, start time (written first);
+- map.json         the plane-object map (schema planeslam.map/1, world frame);
+- map_planes.ply   its plane polygons as a mesh coloured by object; map_points.ply its
+                   sparse cloud;
 - metrics.json     speed, memory (map against point cloud, with the breakdown), lost frames;
-- eval.json, trajectory.png, ate_over_time.png, report.html  when groundtruth.txt exists.
-The final files are also written when the run is interrupted (Ctrl-C), from the frames
-processed so far.
+- eval.json, trajectory.png, ate_over_time.png  when groundtruth.txt exists;
+- report.html      one self-contained page (figures embedded), map.png its top-down map.
+The final files are also written when the run is interrupted (Ctrl-C; SIGTERM too under
+the CLI) or fails, from the frames processed so far. Whole files are replaced atomically
+with the usual permissions, trajectory.txt and frames.jsonl grow a whole line per frame
+(a killed run keeps every finished frame). What cannot be evaluated (a malformed ground
+truth or truth.json, a trajectory too short to align) is a warning in `RunResult.warnings`.
 """
 
 from __future__ import annotations
@@ -17,28 +25,46 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
+from planeslam.app.dataset_options import TopicOverrides
 from planeslam.app.progress import progress_bar
-from planeslam.config import RunConfig, resolve_config
-from planeslam.core.config import save_yaml
-from planeslam.core.errors import ConfigError
+from planeslam.app.signals import deferred_interrupts
+from planeslam.config import PlaneSlamConfig, explain_config
+from planeslam.core.config import ConfigLayer, override_layer
+from planeslam.core.errors import ConfigError, PlaneSlamError
+from planeslam.core.safe_files import LineWriter, atomic_output, write_text_atomic
 from planeslam.eval.metrics import RunMetrics, slam_run_metrics, write_metrics
 from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_report
-from planeslam.io.dataset import TumDataset
+from planeslam.eval.run_info import RunInfo, write_run_info
+from planeslam.io.sequence import RgbdDataset, open_dataset
 from planeslam.io.trajectory import TumWriter, write_tum
+from planeslam.mapping.world_map import Map
 from planeslam.slam import (
     SLAM,
     FrameResult,
     RunSummary,
+    RunTally,
     frame_indices,
     run_frames,
     slam_for_dataset,
 )
 
 logger = logging.getLogger(__name__)
+
+
+class RunObserver(Protocol):
+    """Sees a run as it goes (the rerun viewer): the dataset before the first frame,
+    every frame's result with the SLAM that made it, and the finished SLAM."""
+
+    def start(self, dataset: RgbdDataset, config: PlaneSlamConfig) -> None: ...
+
+    def frame(self, slam: SLAM, result: FrameResult) -> None: ...
+
+    def finish(self, slam: SLAM) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -49,7 +75,9 @@ class RunResult:
     summary: RunSummary
     metrics: RunMetrics
     evaluation: EvaluationRun | None
-    """None without ground truth."""
+    """None without ground truth, or when it could not be evaluated (see `warnings`)."""
+    warnings: tuple[str, ...] = ()
+    """What could not be evaluated or read, and why."""
 
     def text(self) -> str:
         """A few lines for the terminal."""
@@ -58,8 +86,10 @@ class RunResult:
         lines = [
             f"{m.frames} frames ({m.keyframes} keyframes, {m.lost_frames} lost) at "
             f"{m.fps:.1f} fps; tracking: {paths}",
-            f"map {m.map_bytes} bytes vs point cloud {m.pointcloud_bytes} bytes "
-            f"({m.memory_ratio or 0:.0f}x smaller)",
+            f"map {m.map_bytes / 1e3:.0f} kB vs the fused 1 cm point cloud "
+            f"{m.fused_cloud_bytes / 1e6:.1f} MB ({m.memory_ratio or 0:.0f}x smaller; all "
+            f"frames' clouds merged: {m.pointcloud_bytes / 1e6:.0f} MB, "
+            f"{m.memory_ratio_merged or 0:.0f}x)",
         ]
         if m.backend:
             b = m.backend
@@ -75,7 +105,15 @@ class RunResult:
                 if ev.rpe_trans_m_per_s is not None
                 else "RPE not computed (sequence shorter than the RPE span)"
             )
-            lines.append(f"ATE RMSE {ev.ate_rmse_m:.4f} m, {rpe} over {ev.pairs} poses")
+            tracked = (
+                f" ({m.tracked_fraction:.1%} of the frames tracked)"
+                if m.tracked_fraction is not None
+                else ""
+            )
+            lines.append(f"ATE RMSE {ev.ate_rmse_m:.4f} m, {rpe} over {ev.pairs} poses{tracked}")
+        if s.skipped_frames:
+            lines.append(f"{s.skipped_frames} frames skipped: their images could not be read")
+        lines.extend(f"warning: {w}" for w in self.warnings)
         lines.append(f"outputs in {self.out_dir} (open report.html)")
         return "\n".join(lines)
 
@@ -84,74 +122,154 @@ def run_sequence(
     dataset_dir: str | Path,
     out_dir: str | Path,
     config: str | Path | None = None,
-    camera: str | None = None,
+    camera: str | ConfigLayer | None = None,
     backend: str | None = None,
     max_frames: int | None = None,
     every: int | None = None,
     progress: bool = False,
     seed: int | None = None,
+    observer: RunObserver | None = None,
+    command: str = "",
+    topics: TopicOverrides | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
+    start_pose: str | None = None,
+    map_path: str | Path | None = None,
+    localize: bool = False,
 ) -> RunResult:
     """Run SLAM on a TUM-layout folder and write the outputs listed in the module docstring.
-    `backend`, `max_frames`, `every` and `seed` override the config's `run` section; the
-    saved config.yaml holds the values used."""
+    `map_path`: a map.json to track in (the first frame placed by relocalisation, not by
+    ground truth); `localize` leaves it unchanged, else it is extended.
+    `overrides` ('section.key=value') apply after `config` and `camera`; `backend`,
+    `max_frames`, `every`, `seed` and `start_pose` then override the config's `run`
+    section. The saved config.yaml holds the values used, each with its source, and
+    reproduces the run as `--config`. `observer` sees every frame; `command` (the
+    command line) goes into run.json; `topics` chooses a bag's topics."""
     root = Path(dataset_dir)
     out = Path(out_dir)
-    cfg = resolve_config(root, config, camera)
-    run = RunConfig(
-        backend=cfg.run.backend if backend is None else backend,  # type: ignore[arg-type]
-        seed=cfg.run.seed if seed is None else seed,
-        every=cfg.run.every if every is None else every,
-        max_frames=cfg.run.max_frames if max_frames is None else max_frames,
-    )
-    cfg = dataclasses.replace(cfg, run=run)
+    if localize and map_path is None:
+        raise ConfigError("localize needs a map to localise in (--map MAP.json)")
+    flags = {"backend": backend, "seed": seed, "every": every, "max_frames": max_frames}
+    flags["start_pose"] = start_pose
+    flag_layers = [
+        override_layer(
+            f"run.{key}", value, f"--{key.replace('_', '-')} {value}", f"--{key.replace('_', '-')}"
+        )
+        for key, value in flags.items()
+        if value is not None
+    ]
+    resolved = explain_config(root, config, camera, [*overrides, *flag_layers])
+    cfg = resolved.config
+    if topics is not None:
+        cfg = topics.apply(cfg)
+    run = cfg.run
     backend = run.backend
-    dataset = TumDataset(root, cfg.camera, cfg.dataset)
+    dataset = open_dataset(root, cfg.camera, cfg.dataset)
+    cfg = dataclasses.replace(cfg, camera=dataset.camera)  # a bag's camera_info applied
     indices = frame_indices(len(dataset), run.max_frames, run.every)
     if not indices:
         raise ConfigError(f"{root}: no frames to process")
     out.mkdir(parents=True, exist_ok=True)
-    save_yaml(cfg, out / "config.yaml")
-    slam = slam_for_dataset(cfg, dataset, indices[0])
+    write_text_atomic(
+        out / "config.yaml", resolved.replaced(cfg, "dataset or topic options").to_yaml()
+    )
+    write_run_info(RunInfo.now(root, backend, command), out)
+    if map_path is not None:
+        slam = SLAM(cfg, map=Map.load(map_path), localize=localize)
+    else:
+        slam = slam_for_dataset(cfg, dataset, indices[0])
+    if observer is not None:
+        observer.start(dataset, cfg)
     summary: RunSummary | None = None
     with (
         slam,
         progress_bar(len(indices), f"{backend} {root.name}", "frame", enabled=progress) as bar,
         TumWriter(out / "trajectory.txt", header=f"planeslam {backend} online") as writer,
-        open(out / "frames.jsonl", "w", encoding="utf-8") as frames_fh,
+        LineWriter(out / "frames.jsonl") as frames_log,
     ):
 
         def on_result(result: FrameResult) -> None:
-            writer.write(result.timestamp, result.T_world_cam)
-            frames_fh.write(json.dumps(result.to_record()) + "\n")
-            frames_fh.flush()
+            if not result.lost:  # lost frames have no pose (left out, as ORB-SLAM does)
+                writer.write(result.timestamp, result.T_world_cam)
+            frames_log.write_line(json.dumps(result.to_record()))
             bar.step(result.path.value)
+            if observer is not None:
+                observer.frame(slam, result)
 
+        tally = RunTally()
         try:
-            summary = run_frames(slam, dataset, indices, on_result)
+            summary = run_frames(slam, dataset, indices, on_result, tally, deferred_interrupts)
         finally:
             if summary is None:  # interrupted or failed: keep what was computed
-                logger.warning("run stopped after %d frames; writing what it has", slam.frames)
-                _write_final(slam, out, backend, None)
+                _write_stopped(slam, out, backend, tally)
     assert summary is not None
     metrics = _write_final(slam, out, backend, summary)
+    if observer is not None:
+        observer.finish(slam)
     evaluation = None
+    warnings: list[str] = []
+    gt_error = getattr(dataset, "groundtruth_error", "")  # a TUM folder's unreadable truth
+    if gt_error:
+        warnings.append(f"not evaluated: {gt_error}")
     if dataset.groundtruth is not None:
-        evaluation = evaluate_to_folder(
-            root / "groundtruth.txt", out / "trajectory.txt", out, cfg.dataset.max_time_difference_s
-        )
-    else:
-        write_report(out, title=f"planeslam {backend}: {root.name}")
-    return RunResult(out_dir=out, summary=summary, metrics=metrics, evaluation=evaluation)
+        gt_path = dataset.groundtruth_path
+        if gt_path is None:  # from a bag's /tf: kept beside the outputs for `planeslam eval`
+            gt_path = out / "groundtruth.txt"
+            write_tum(gt_path, dataset.groundtruth, header=f"ground truth from {root} /tf")
+        try:
+            evaluation = evaluate_to_folder(
+                gt_path,
+                out / "trajectory.txt",
+                out,
+                cfg.dataset.max_time_difference_s,
+                tracked_fraction=metrics.tracked_fraction,
+            )
+            warnings.extend(evaluation.warnings)
+        except PlaneSlamError as exc:  # SLAM's outputs stand without it
+            tracked = f"{slam.tracked_frames} of {slam.frames} frames tracked"
+            warnings.append(f"no ATE ({tracked}): {exc}")
+            logger.warning("%s", warnings[-1])
+    if evaluation is None:
+        try:
+            write_report(out)
+        except PlaneSlamError as exc:
+            warnings.append(f"report.html not written: {exc}")
+            logger.warning("%s", warnings[-1])
+    return RunResult(
+        out_dir=out,
+        summary=summary,
+        metrics=metrics,
+        evaluation=evaluation,
+        warnings=tuple(warnings),
+    )
 
 
-def _write_final(slam: SLAM, out: Path, backend: str, summary: RunSummary | None) -> RunMetrics:
-    """Final trajectory, map.json, map.ply and metrics.json (from a partial run too)."""
-    if slam.frames:
-        tmp = out / "trajectory.txt.tmp"
-        write_tum(tmp, slam.trajectory(), header=f"planeslam {backend}")
-        os.replace(tmp, out / "trajectory.txt")
-    slam.map.save(out / "map.json")
-    slam.map.write_ply(out / "map.ply")
-    metrics = slam_run_metrics(slam, summary)
-    write_metrics(metrics, out / "metrics.json")
+def _write_stopped(slam: SLAM, out: Path, backend: str, tally: RunTally) -> None:
+    """The final files of a run that was interrupted or failed, from its frames so far
+    (objects aggregated, as `finish` would). A failure here is logged, not raised: the
+    error that stopped the run is the one to report."""
+    logger.warning("run stopped after %d frames; writing what it has", slam.frames)
+    try:
+        if slam.frames:
+            slam.map.reaggregate()
+        _write_final(slam, out, backend, tally.summary())
+    except Exception as exc:
+        logger.warning("could not write the final outputs to %s: %s", out, exc)
+
+
+def _write_final(slam: SLAM, out: Path, backend: str, summary: RunSummary) -> RunMetrics:
+    """Final trajectory, map.json, the map's PLY files and metrics.json (from a partial run
+    too), each replaced atomically; Ctrl-C and SIGTERM wait until they are written."""
+    with deferred_interrupts():
+        if slam.frames:
+            with atomic_output(out / "trajectory.txt") as tmp:
+                write_tum(tmp, slam.trajectory(), header=f"planeslam {backend}")
+        with atomic_output(out / "map.json") as tmp:
+            slam.map.save(tmp)
+        with atomic_output(out / "map_planes.ply") as tmp:
+            slam.map.write_planes_ply(tmp)
+        with atomic_output(out / "map_points.ply") as tmp:
+            slam.map.write_points_ply(tmp)
+        metrics = slam_run_metrics(slam, summary)
+        with atomic_output(out / "metrics.json") as tmp:
+            write_metrics(metrics, tmp)
     return metrics

@@ -1,5 +1,5 @@
 """`planeslam bench suite`: the benchmark suite of `planeslam.eval.suite` with a progress
-bar, its tables written to a folder."""
+bar, its tables written to a folder; jobs run locally or on a Dask cluster."""
 
 from __future__ import annotations
 
@@ -29,12 +29,17 @@ def run_suite_command(
     out_dir: str | Path,
     jobs: int | None = None,
     progress: bool = False,
+    executor: str | None = None,
+    scheduler: str | None = None,
 ) -> str:
-    """`planeslam bench suite [SUITE.yaml] [--jobs N]`: render the synthetic scenes, run the
-    suite with a progress bar, write suite.md and suite.csv into out_dir; returns the table.
+    """`planeslam bench suite [SUITE.yaml] [--jobs N] [--executor local|dask] [--scheduler
+    ADDRESS]`: render the synthetic scenes, run the suite with a progress bar, write suite.md
+    and suite.csv into out_dir; returns the table.
 
     Without SUITE the bundled default suite runs from the current directory; its optional
-    sequences (../shared/data) are skipped with a note when absent.
+    sequences (../shared/data) are skipped with a note when absent. `executor` and
+    `scheduler` override the suite file's (a scheduler alone means dask); jobs get absolute
+    paths (a Dask cluster's workers must see the data and the output folder at them).
     """
     if suite is None:
         from importlib import resources
@@ -46,11 +51,17 @@ def run_suite_command(
         config, base_dir = load_suite(suite)
     present = []
     for spec in config.sequences:
-        if spec.optional and spec.scene is None and not (base_dir / spec.path).is_dir():
+        if spec.optional and spec.scene is None and not (base_dir / spec.path).exists():
             log.warning("skipping %s: %s not found", spec.name, base_dir / spec.path)
         else:
             present.append(spec)
-    config = dataclasses.replace(config, sequences=tuple(present), jobs=jobs or config.jobs)
+    config = dataclasses.replace(
+        config,
+        sequences=tuple(present),
+        jobs=jobs or config.jobs,
+        executor=executor or ("dask" if scheduler else config.executor),
+        scheduler=scheduler or config.scheduler,
+    )
     out = Path(out_dir)
     render_scenes(config, out)
     total = len(config.sequences) * len(config.methods)
@@ -60,7 +71,7 @@ def run_suite_command(
             status = "failed" if row.error else f"ATE {row.ate_rmse_m or 0:.3f} m"
             bar.step(f"{row.sequence} {row.method}: {status}")
 
-        result = run_suite(config, base_dir, out, on_row)
+        result = run_suite(config, base_dir.resolve(), out.resolve(), on_row)
     table = to_markdown(result)
     (out / "suite.md").write_text(table, encoding="utf-8")
     write_csv(result, out / "suite.csv")

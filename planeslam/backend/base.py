@@ -87,6 +87,8 @@ class BackendResult:
     """Indeterminate updates caught and handled."""
     num_factors: int = 0
     """Factors in the graph (0 without one)."""
+    peak_rss_mb: float = 0.0
+    """Peak resident memory of the backend's own process [MiB] (0 when it ran inline)."""
 
 
 class Backend(Protocol):
@@ -100,9 +102,10 @@ class Backend(Protocol):
     """Whether the map re-aggregates its objects at every merge (otherwise at `finish`)."""
 
     def is_keyframe(
-        self, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
+        self, T_keyframes: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
     ) -> bool:
-        """Whether a mapped frame at T_now (4, 4) becomes a keyframe after the last one."""
+        """Whether a mapped frame at T_now (4, 4) becomes a keyframe; T_keyframes (K, 4, 4):
+        the keyframes so far, the last one last; `frames_since` the last one."""
         ...
 
     def submit(self, keyframe: KeyframeInput) -> None:

@@ -45,6 +45,9 @@ class BackendConfig:
     """A frame this many frames after the last keyframe becomes a keyframe."""
     keyframe_new_planes: int = 4
     """A frame with this many planes the map does not have yet becomes a keyframe."""
+    keyframe_skip_revisits: bool = True
+    """A frame within the translation and rotation thresholds of an earlier keyframe does
+    not become one by motion or frame count (a revisit that sees nothing new)."""
     lag_frames: int = 2
     """A keyframe's result is applied to the map and poses before tracking the frame this
     many frames after it (or the next keyframe, if sooner): the smoother works on it

@@ -9,16 +9,16 @@ factors of its observation. One `ISAM2.update` per keyframe (plus
 `extra_updates` relinearising iterations).
 
 An indeterminate system ("Indeterminate linear system", a RuntimeError from
-gtsam) never escapes: iSAM2 is not exception safe, so it is rebuilt from the
-committed factors and the last estimate, the landmark named in the message (or,
-failing that, every new landmark, then every landmark factor of the keyframe) is
-dropped for this keyframe and the update retried.
+gtsam) never escapes: `planeslam.factors.recovery.RecoveringISAM2` rebuilds iSAM2
+(it is not exception safe) from the committed factors and the last estimate, drops
+the landmark named in the message (or, failing that, every new landmark, then every
+landmark factor of the keyframe) for this keyframe and retries the update.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
-import re
 import time
 from collections.abc import Iterable, Mapping
 
@@ -26,15 +26,13 @@ import gtsam
 import numpy as np
 
 from planeslam.backend.config import BackendConfig
-from planeslam.core.errors import ConfigError, GeometryError
+from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import as_pose, invert_pose
 from planeslam.core.types import FrameMeasurements, PlaneEstimate
-from planeslam.factors.config import LandmarkKeys
-from planeslam.factors.landmarks import AddedFactors, PlaneLandmarks
+from planeslam.factors.landmarks import PlaneLandmarks
+from planeslam.factors.recovery import RecoveringISAM2, new_isam2
 
 logger = logging.getLogger(__name__)
-
-_KEY_IN_MESSAGE = re.compile(r"near variable\s+(\d+)")
 
 
 class Isam2Backend:
@@ -44,21 +42,30 @@ class Isam2Backend:
         self.config = config or BackendConfig()
         self.keys = self.config.keys
         self.landmarks = PlaneLandmarks(self.keys, self.config.landmarks)
-        self._params = gtsam.ISAM2Params()
-        self._params.setRelinearizeThreshold(self.config.relinearize_threshold)
-        self._params.relinearizeSkip = self.config.relinearize_skip
-        self._isam: gtsam.ISAM2 | None = None  # made by `_rebuild` on the first update
-        self._theta: gtsam.Values | None = None
-        self._graph = gtsam.NonlinearFactorGraph()  # every committed factor, for rebuilds
-        self._estimate = gtsam.Values()
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = self.config.relinearize_skip
+        self._smoother = RecoveringISAM2(params, self.config.extra_updates)
         self._timestamps: dict[int, float] = {}
         self._last_index: int | None = None
         self.update_ms: list[float] = []
         """Wall-clock ms of the iSAM2 work per keyframe (updates, retries, estimate)."""
-        self.failures: int = 0
-        """Indeterminate updates caught and handled so far."""
 
     # ------------------------------------------------------------------ queries
+
+    @property
+    def failures(self) -> int:
+        """Indeterminate updates caught and handled so far."""
+        return self._smoother.failures
+
+    @property
+    def _estimate(self) -> gtsam.Values:
+        return self._smoother.estimate
+
+    @property
+    def _graph(self) -> gtsam.NonlinearFactorGraph:
+        """Every committed factor."""
+        return self._smoother.graph
 
     @property
     def num_factors(self) -> int:
@@ -152,14 +159,12 @@ class Isam2Backend:
             plane_ids,
             corner_ids,
         )
+        pose_values = gtsam.Values()
+        pose_values.insert(pose_key, gtsam.Pose3(T_guess))
         start = time.perf_counter()
-        kept = self._update_with_retries(pose_key, T_guess, pose_graph, added, landmark_values)
-        assert self._isam is not None, "_update_with_retries leaves a smoother"
-        self._estimate = self._isam.calculateEstimate()
+        added = dataclasses.replace(added, values=landmark_values)  # all it inserted
+        self._smoother.update(pose_graph, pose_values, added, self.landmarks)
         self.update_ms.append((time.perf_counter() - start) * 1e3)
-        for factor in kept:
-            self._graph.add(factor)
-        self.landmarks.update_estimates(self._estimate)
         self._timestamps[index] = float(timestamp)
         self._last_index = index
         return self._estimate.atPose3(pose_key).matrix()
@@ -177,77 +182,6 @@ class Isam2Backend:
             )
         return s
 
-    def _update_with_retries(
-        self,
-        pose_key: int,
-        T_guess: np.ndarray,
-        pose_graph: gtsam.NonlinearFactorGraph,
-        added: AddedFactors,
-        landmark_values: gtsam.Values,
-    ) -> list[gtsam.NonlinearFactor]:
-        """One iSAM2 update with this keyframe's factors; on an indeterminate system,
-        rebuild and retry with fewer landmark factors. Returns the factors committed."""
-        if self._isam is None:
-            self._rebuild()
-        new_keys = set(added.new_keys)
-        dropped: set[int] = set()
-        level = 0  # 0: drop named keys, 1: drop all new landmarks, 2: drop all landmark factors
-        while True:
-            factors = [pose_graph.at(i) for i in range(pose_graph.size())]
-            for factor in added.factors:
-                keys = set(factor.keys())
-                if level >= 2 or keys & dropped or (level >= 1 and keys & new_keys):
-                    continue
-                factors.append(factor)
-            used = {k for f in factors for k in f.keys()}
-            graph = gtsam.NonlinearFactorGraph()
-            for factor in factors:
-                graph.add(factor)
-            values = gtsam.Values()
-            values.insert(pose_key, gtsam.Pose3(T_guess))
-            for key in added.new_keys:
-                if key in used:
-                    values.insert(key, _value_of(landmark_values, key, self.keys))
-            isam = self._isam
-            assert isam is not None, "_rebuild makes the smoother"
-            try:
-                isam.update(graph, values)
-                for _ in range(self.config.extra_updates):
-                    isam.update()
-            except RuntimeError as exc:
-                self.failures += 1
-                message = " ".join(str(exc).split())
-                match = _KEY_IN_MESSAGE.search(message)
-                bad = int(match.group(1)) if match else None
-                logger.warning(
-                    "iSAM2 update at %s failed (%s); rebuilding and retrying",
-                    gtsam.DefaultKeyFormatter(pose_key),
-                    message[:120],
-                )
-                self._rebuild()
-                if level == 0 and bad is not None and bad != pose_key and bad not in dropped:
-                    dropped.add(bad)
-                elif level < 2:
-                    level += 1
-                else:
-                    raise GeometryError(
-                        f"iSAM2 cannot add pose {gtsam.DefaultKeyFormatter(pose_key)} even with "
-                        f"odometry only: {message[:200]}"
-                    ) from None
-                continue
-            lost = [k for k in added.new_keys if k not in used]
-            if lost:
-                lost_planes = tuple(j for j in added.new_planes if self.keys.plane(j) in lost)
-                lost_corners = tuple(c for c in added.new_corners if self.keys.corner(c) in lost)
-                self.landmarks.forget(lost_planes, lost_corners)
-                logger.warning(
-                    "dropped %d new plane and %d new corner landmarks at %s",
-                    len(lost_planes),
-                    len(lost_corners),
-                    gtsam.DefaultKeyFormatter(pose_key),
-                )
-            return factors
-
     def optimize_batch(self, max_iterations: int = 20) -> float:
         """Gauss-Newton on every committed factor from the current estimate (the final
         global optimisation of a run: iSAM2 relinearises lazily online): a fresh iSAM2
@@ -263,7 +197,7 @@ class Isam2Backend:
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(0.0)
         params.relinearizeSkip = 1
-        isam, _theta = _new_isam2(params)  # the handle lives as long as `isam` here
+        isam, _theta = new_isam2(params)  # the handle lives as long as `isam` here
         try:
             isam.update(self._graph, self._estimate)
             for _ in range(int(max_iterations) - 1):
@@ -272,31 +206,6 @@ class Isam2Backend:
         except RuntimeError as exc:  # an indeterminate batch keeps the iSAM2 estimate
             logger.warning("batch optimisation failed (%s); keeping the iSAM2 estimate", exc)
             return (time.perf_counter() - start) * 1e3
-        self._estimate = estimate
-        self.landmarks.update_estimates(self._estimate)
-        self._isam = self._theta = None  # rebuilt at the estimate if another keyframe comes
+        self._smoother.set_estimate(estimate)  # rebuilt there if another keyframe comes
+        self.landmarks.update_estimates(estimate)
         return (time.perf_counter() - start) * 1e3
-
-    def _rebuild(self) -> None:
-        """A fresh iSAM2 from the committed factors, linearised at the last estimate."""
-        self._isam, self._theta = _new_isam2(self._params)
-        if self._graph.size():
-            self._isam.update(self._graph, self._estimate)
-
-
-def _new_isam2(params: gtsam.ISAM2Params) -> tuple[gtsam.ISAM2, gtsam.Values]:
-    """An ISAM2 and a Python handle on its linearisation point, to be kept as long as it.
-
-    pybind11 copies a C++ `const Values&` into a new Python object for every call of a
-    Python factor (`CustomFactor`) unless a Python object for that very Values exists:
-    without the handle each robust plane, corner and structural factor copies the whole
-    estimate each time iSAM2 linearises it, which made updates O(map size) per factor.
-    """
-    isam = gtsam.ISAM2(params)
-    return isam, isam.getLinearizationPoint()
-
-
-def _value_of(values: gtsam.Values, key: int, keys: LandmarkKeys):
-    if gtsam.Symbol(key).chr() == ord(keys.plane_char):
-        return values.atOrientedPlane3(key)
-    return values.atPoint3(key)

@@ -16,18 +16,45 @@ def is_keyframe(
     T_now: np.ndarray,
     frames_since: int,
     new_planes: int = 0,
+    T_keyframes: np.ndarray | None = None,
 ) -> bool:
     """Whether a frame at T_now (4, 4) becomes a keyframe after the one at T_last_kf (4, 4).
 
-    True when it moved at least `keyframe_min_translation_m`, turned at least
-    `keyframe_min_rotation_deg`, is `keyframe_max_frames` frames after it, or sees at least
-    `keyframe_new_planes` planes the map does not have yet.
+    True when it sees at least `keyframe_new_planes` planes the map does not have yet, or
+    when it moved at least `keyframe_min_translation_m`, turned at least
+    `keyframe_min_rotation_deg`, or is `keyframe_max_frames` frames after the last one;
+    with `keyframe_skip_revisits`, not then when it is that close to any earlier keyframe
+    of `T_keyframes` (K, 4, 4): a revisit that sees nothing new adds nothing to the graph.
     """
-    T_rel = invert_pose(as_pose(T_last_kf, "T_last_kf")) @ as_pose(T_now, "T_now")
+    if new_planes >= config.keyframe_new_planes:
+        return True
+    if not (
+        frames_since >= config.keyframe_max_frames
+        or _moved(config, as_pose(T_last_kf, "T_last_kf"), as_pose(T_now, "T_now"))
+    ):
+        return False
+    if not config.keyframe_skip_revisits or T_keyframes is None or not len(T_keyframes):
+        return True
+    return not _near_any(config, np.asarray(T_keyframes, dtype=np.float64), T_now)
+
+
+def _moved(config: BackendConfig, T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    T_rel = invert_pose(T_a) @ T_b
     cos = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
     return bool(
-        frames_since >= config.keyframe_max_frames
-        or new_planes >= config.keyframe_new_planes
-        or np.linalg.norm(T_rel[:3, 3]) >= config.keyframe_min_translation_m
+        np.linalg.norm(T_rel[:3, 3]) >= config.keyframe_min_translation_m
         or math.degrees(math.acos(cos)) >= config.keyframe_min_rotation_deg
     )
+
+
+def _near_any(config: BackendConfig, T_keyframes: np.ndarray, T_now: np.ndarray) -> bool:
+    """Whether T_now is within the translation and rotation thresholds of a keyframe."""
+    near = (
+        np.linalg.norm(T_keyframes[:, :3, 3] - T_now[:3, 3], axis=1)
+        < config.keyframe_min_translation_m
+    )
+    if not near.any():
+        return False
+    R = T_keyframes[near, :3, :3]
+    cos = (np.einsum("kij,ij->k", R, T_now[:3, :3]) - 1.0) / 2.0  # trace(R_k^T R_now)
+    return bool(np.any(cos > math.cos(math.radians(config.keyframe_min_rotation_deg))))

@@ -27,7 +27,7 @@ class MergeBackend:
         self._finished = False
 
     def is_keyframe(
-        self, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
+        self, T_keyframes: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
     ) -> bool:
         return True
 

@@ -37,6 +37,7 @@ from planeslam.backend.config import BackendConfig
 from planeslam.backend.keyframes import is_keyframe
 from planeslam.core.errors import PlaneSlamError
 from planeslam.core.native_tuning import single_native_threads
+from planeslam.core.resources import peak_rss_mb
 
 if TYPE_CHECKING:
     from planeslam.backend.isam2 import Isam2Backend
@@ -105,9 +106,11 @@ class Isam2Worker:
         self._reply()  # 'ready': the child has imported gtsam (start-up, not run time)
 
     def is_keyframe(
-        self, T_last_kf: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
+        self, T_keyframes: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int
     ) -> bool:
-        return is_keyframe(self.config, T_last_kf, T_now, frames_since, new_planes)
+        return is_keyframe(
+            self.config, T_keyframes[-1], T_now, frames_since, new_planes, T_keyframes[:-1]
+        )
 
     def submit(self, keyframe: KeyframeInput) -> None:
         """Hand a keyframe to the smoother (see `Isam2Backend.add_keyframe`) without
@@ -234,6 +237,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             batch_ms=batch_ms,
             failures=backend.failures,
             num_factors=backend.num_factors,
+            peak_rss_mb=peak_rss_mb() if _IN_CHILD else 0.0,
         )
     raise ValueError(f"unknown backend request {request!r}")
 
@@ -261,10 +265,19 @@ def _start_worker(config: BackendConfig) -> tuple[subprocess.Popen, Connection]:
 _CHILD_CODE = "import sys; from planeslam.backend.worker import serve; serve(int(sys.argv[1]))"
 
 
+_IN_CHILD = False
+"""Set in the worker process (its memory is then the backend's own)."""
+
+
 def serve(fd: int) -> None:
     """The worker process, on connection descriptor `fd`: a `BackendConfig`, then requests
     in and replies out, until 'close' or a closed connection."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's to handle
+    global _IN_CHILD
+    _IN_CHILD = True
+    # Ctrl-C and SIGTERM (which `timeout` sends to the whole process group) are the
+    # parent's to handle: it stops this process, which also exits when the parent dies.
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, signal.SIG_IGN)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     from planeslam.backend.isam2 import Isam2Backend
 

@@ -37,6 +37,11 @@ class CameraConfig:
         for name in ("fx", "fy", "depth_scale"):
             if not float(getattr(self, name)) > 0:
                 raise ConfigError(f"camera.{name} must be > 0, got {getattr(self, name)!r}")
+        for name in ("fx", "fy", "cx", "cy", "depth_scale"):
+            if not np.isfinite(float(getattr(self, name))):
+                raise ConfigError(
+                    f"camera.{name} must be a finite number, got {getattr(self, name)!r}"
+                )
         if self.width <= 0 or self.height <= 0:
             raise ConfigError(f"camera size must be positive, got {self.width}x{self.height}")
         if len(self.distortion) not in (0, 4, 5, 8):
@@ -57,17 +62,20 @@ class CameraConfig:
 
     def with_overrides(self, text: str) -> CameraConfig:
         """Apply a command-line override 'fx,fy,cx,cy[,depth_scale]'."""
-        try:
-            values = [float(v) for v in text.split(",")]
-        except ValueError:
-            values = []
-        if len(values) not in (4, 5):
-            raise ConfigError(
-                "camera override: expected 'fx,fy,cx,cy[,depth_scale]' (4 or 5 numbers), "
-                f"got {text!r}"
-            )
-        changes = dict(zip(("fx", "fy", "cx", "cy", "depth_scale"), values, strict=False))
-        return replace(self, **changes)  # type: ignore[arg-type]
+        return replace(self, **camera_override_values(text))  # type: ignore[arg-type]
+
+
+def camera_override_values(text: str) -> dict[str, float]:
+    """'fx,fy,cx,cy[,depth_scale]' -> {'fx': .., 'fy': .., 'cx': .., 'cy': ..[, 'depth_scale']}."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) not in (4, 5):
+        raise ConfigError(
+            f"camera override: expected 'fx,fy,cx,cy[,depth_scale]' (4 or 5 numbers), got {text!r}"
+        )
+    return dict(zip(("fx", "fy", "cx", "cy", "depth_scale"), values, strict=False))
 
 
 @dataclass(frozen=True)

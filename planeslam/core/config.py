@@ -1,15 +1,20 @@
-"""Typed configuration machinery: frozen dataclasses from YAML mappings and back.
+"""Typed configuration machinery: frozen dataclasses from YAML mappings and back, and
+layers of values overlaid key by key with the provenance of every key.
 
 Loading rejects unknown keys and names the valid ones, so a misspelt key never
 passes silently. Each stage's config dataclass lives beside its stage;
-`planeslam.config` composes them.
+`planeslam.config` composes them and decides the layers (defaults, preset, file,
+dataset camera, overrides).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import re
 import types
 import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -76,7 +81,7 @@ def _coerce(hint: Any, value: Any, source: str, key: str) -> Any:
     if hint in (int, float):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"{source}: {key} expects a number, got {value!r}")
-        if hint is int and float(value) != int(value):
+        if hint is int and not float(value).is_integer():  # also inf and NaN
             raise ConfigError(f"{source}: {key} expects a whole number, got {value!r}")
         return hint(value)
     if hint is str:
@@ -112,3 +117,142 @@ def save_yaml(obj: Any, path: Path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w", encoding="utf-8") as fh:
         yaml.safe_dump(to_mapping(obj), fh, sort_keys=False)
+
+
+# ------------------------------------------------------------------------------ layers
+
+
+@dataclass(frozen=True)
+class ConfigLayer:
+    """One source of configuration values, overlaid key by key on what lies below it."""
+
+    values: Mapping[str, Any]
+    """The keys this layer sets, nested by section (as in a YAML file)."""
+    source: str
+    """Where the values come from, in full (a file path, 'override camera.fx=500'): error
+    messages name it."""
+    label: str
+    """Short provenance shown beside each key it sets ('preset tum_fr1', 'file my.yaml',
+    'camera.yaml', '--set')."""
+
+
+_OVERRIDE = re.compile(r"\s*([A-Za-z_]\w*(?:\.[A-Za-z_]\w*)+)\s*=(.*)", re.DOTALL)
+_FLOAT_E = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+"""Numbers like 1e-3, which YAML 1.1 (PyYAML) reads as strings."""
+
+
+def parse_override(text: str, label: str = "override") -> ConfigLayer:
+    """A layer setting one key from 'section.key=value' (value in YAML syntax: 0, 1.5e-3,
+    true, null, [0, 65535], msac); nested sections are dotted
+    ('segmentation.organized.pixel_stride=1'). Types are checked when the layers are
+    resolved (`resolve_layers`)."""
+    match = _OVERRIDE.fullmatch(text)
+    if match is None:
+        raise ConfigError(
+            f"{label} {text!r}: expected section.key=value (e.g. backend.lag_frames=0)"
+        )
+    key, raw = match.group(1), match.group(2).strip()
+    if _FLOAT_E.fullmatch(raw):
+        value: Any = float(raw)
+    else:
+        try:
+            value = yaml.safe_load(raw) if raw else None
+        except yaml.YAMLError as exc:
+            reason = str(exc).splitlines()[0]
+            raise ConfigError(f"{label} {text!r}: the value is not YAML ({reason})") from None
+    return override_layer(key, value, f"{label} {text}", label)
+
+
+def override_layer(key: str, value: Any, source: str, label: str) -> ConfigLayer:
+    """A layer setting the dotted `key` ('run.backend') to `value`."""
+    nested: Any = value
+    for part in reversed(key.split(".")):
+        nested = {part: nested}
+    return ConfigLayer(nested, source, label)
+
+
+def _merge(base: Mapping[str, Any], layer: Mapping[str, Any]) -> dict[str, Any]:
+    """Nested mappings overlaid key by key (new dicts; neither input changes)."""
+    out = dict(base)
+    for key, value in layer.items():
+        below = out.get(key)
+        if isinstance(value, Mapping):
+            out[key] = _merge(below if isinstance(below, Mapping) else {}, value)
+        else:
+            out[key] = value
+    return out
+
+
+def leaf_keys(cls: type, prefix: str = "") -> list[str]:
+    """Dotted names of every key of config dataclass `cls`, sections expanded, in field order."""
+    hints = typing.get_type_hints(cls)
+    keys: list[str] = []
+    for f in dataclasses.fields(cls):
+        name = f"{prefix}{f.name}"
+        if dataclasses.is_dataclass(hints[f.name]):
+            keys += leaf_keys(hints[f.name], f"{name}.")
+        else:
+            keys.append(name)
+    return keys
+
+
+def _keys_set(cls: type, data: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """Dotted names of the keys of `cls` that the (validated) mapping `data` sets."""
+    hints = typing.get_type_hints(cls)
+    keys: list[str] = []
+    for name, value in data.items():
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint) and isinstance(value, Mapping):
+            keys += _keys_set(hint, value, f"{prefix}{name}.")  # type: ignore[arg-type]
+        else:
+            keys.append(f"{prefix}{name}")
+    return keys
+
+
+def resolve_layers(cls: type[T], layers: Sequence[ConfigLayer]) -> tuple[T, dict[str, str]]:
+    """Overlay `layers` in order, key by key, on the defaults of dataclass `cls`.
+
+    Every layer is checked as it is added (unknown keys with the valid ones, types,
+    ranges), and a failure names that layer's `source`. Returns the config and, for every
+    key (dotted, `leaf_keys` order), the `label` of the last layer that set it or
+    'default'.
+    """
+    merged: dict[str, Any] = {}
+    sources = dict.fromkeys(leaf_keys(cls), "default")
+    result = from_mapping(cls, merged, "defaults")
+    for layer in layers:
+        if not isinstance(layer.values, Mapping):
+            raise ConfigError(
+                f"{layer.source}: expected a mapping of keys, got {type(layer.values).__name__}"
+            )
+        merged = _merge(merged, layer.values)
+        result = from_mapping(cls, merged, layer.source)
+        for key in _keys_set(cls, layer.values):
+            sources[key] = layer.label
+    return result, sources
+
+
+def _yaml_entry(key: str, value: Any) -> str:
+    """'key: value' in YAML flow style, one line."""
+    text = yaml.safe_dump({key: value}, default_flow_style=True, width=2**31 - 1).strip()
+    return text[1:-1]  # drop the braces of the one-entry flow mapping
+
+
+def format_with_sources(obj: Any, sources: Mapping[str, str], comment_column: int = 44) -> str:
+    """A resolved config (dataclass) as YAML, each key followed by `# <where it came from>`;
+    the text loads back as a config file."""
+    lines: list[str] = []
+
+    def walk(mapping: Mapping[str, Any], prefix: str, depth: int) -> None:
+        for key, value in mapping.items():
+            dotted = f"{prefix}{key}"
+            indent = "  " * depth
+            if isinstance(value, dict) and dotted not in sources:
+                lines.append(f"{indent}{key}:")
+                walk(value, f"{dotted}.", depth + 1)
+            else:
+                entry = f"{indent}{_yaml_entry(key, value)}"
+                lines.append(f"{entry.ljust(comment_column)}  # {sources.get(dotted, '?')}")
+
+    walk(to_mapping(obj), "", 0)
+    return "\n".join(lines) + "\n"

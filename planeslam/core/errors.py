@@ -19,6 +19,10 @@ class DatasetFormatError(PlaneSlamError):
     """A dataset folder, list file, image or trajectory file is not as expected."""
 
 
+class FrameReadError(DatasetFormatError):
+    """One frame's image is missing or cannot be decoded; a run skips that frame."""
+
+
 class GeometryError(PlaneSlamError):
     """Degenerate geometry: ill-conditioned plane triples, too few points, ..."""
 
@@ -33,3 +37,7 @@ class MapError(PlaneSlamError):
 
 class EvaluationError(PlaneSlamError):
     """Trajectory evaluation cannot be done (empty files, no associated poses, ...)."""
+
+
+class DownloadError(PlaneSlamError):
+    """A download failed: HTTP error, unreachable server, interrupted transfer."""

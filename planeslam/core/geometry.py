@@ -8,6 +8,7 @@ n . x + d = 0 and |n| = 1.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -49,10 +50,18 @@ def invert_pose(T: np.ndarray) -> np.ndarray:
     return Ti
 
 
-def as_pose(T: np.ndarray, name: str, error: type[PlaneSlamError] = GeometryError) -> np.ndarray:
-    """T as a (4, 4) float64 array, or `error` naming `name` when it has another shape or
-    non-finite values (the one check every module applies to a pose argument)."""
-    T = np.asarray(T, dtype=np.float64)
+def as_pose(T: Any, name: str, error: type[PlaneSlamError] = GeometryError) -> np.ndarray:
+    """T (a (4, 4) array, or a gtsam.Pose3 or anything else with a `matrix()` method) as a
+    (4, 4) float64 array, or `error` naming `name` when it has another shape or non-finite
+    values (the one check every module applies to a pose argument). gtsam is not imported."""
+    if not isinstance(T, np.ndarray) and callable(getattr(T, "matrix", None)):
+        T = T.matrix()  # gtsam.Pose3 (duck-typed: core does not import gtsam)
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise error(
+            f"{name} is a {type(T).__name__}, expected a (4, 4) pose array or a gtsam.Pose3"
+        ) from None
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise error(f"{name} has shape {T.shape} or non-finite values, expected (4, 4)")
     return T
@@ -213,3 +222,49 @@ def polygon_area(polygon_uv: np.ndarray) -> float:
         return 0.0
     x, y = polygon_uv[:, 0], polygon_uv[:, 1]
     return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+
+
+def clip_convex_polygon(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
+    """Sutherland-Hodgman: convex (K, 2) subject clipped by a counter-clockwise convex (H, 2).
+
+    Each clip edge is one vectorised pass over the subject's edges; every
+    subject edge emits [crossing point if it crosses, end point if inside].
+    """
+    out = subject
+    for c1, c2 in zip(clip, np.roll(clip, -1, axis=0), strict=True):
+        if len(out) == 0:
+            break
+        edge = c2 - c1
+        side = edge[0] * (out[:, 1] - c1[1]) - edge[1] * (out[:, 0] - c1[0])  # >= 0: inside
+        start, end = out, np.roll(out, -1, axis=0)
+        s_side, e_side = side, np.roll(side, -1)
+        s_in, e_in = s_side >= 0, e_side >= 0
+        crosses = s_in != e_in
+        with np.errstate(divide="ignore", invalid="ignore"):
+            frac = np.where(crosses, s_side / (s_side - e_side), 0.0)
+        crossing = start + frac[:, None] * (end - start)
+        slots = np.stack([crossing, end], axis=1)  # (K, 2 slots, 2)
+        keep = np.stack([crosses, e_in], axis=1)
+        out = slots[keep]
+    return out
+
+
+def convex_polygon_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance between two counter-clockwise convex polygons (K, 2), (L, 2) [m]: 0 when
+    they overlap or touch, else the smallest distance between their boundaries."""
+    if len(a) == 0 or len(b) == 0:
+        return float("inf")
+    if len(clip_convex_polygon(a, b)):
+        return 0.0
+    return min(_points_to_ring(a, b), _points_to_ring(b, a))
+
+
+def _points_to_ring(points: np.ndarray, ring: np.ndarray) -> float:
+    """Smallest distance from the (P, 2) points to the edges of the closed (R, 2) ring."""
+    start, end = ring, np.roll(ring, -1, axis=0)
+    edge = end - start  # (R, 2)
+    rel = points[:, None, :] - start[None, :, :]  # (P, R, 2)
+    length2 = np.maximum(np.einsum("rk,rk->r", edge, edge), 1e-24)
+    s = np.clip(np.einsum("prk,rk->pr", rel, edge) / length2, 0.0, 1.0)
+    closest = start[None] + s[..., None] * edge[None]
+    return float(np.sqrt(np.min(np.sum((points[:, None, :] - closest) ** 2, axis=-1))))

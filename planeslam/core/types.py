@@ -18,8 +18,14 @@ class TrackingPath(str, enum.Enum):
     """The first frame (or the first of an empty map): it defines the pose."""
     PLANES = "planes"
     """Closed-form pose from planes and corners matched to the map near the prediction."""
+    PLANES_POINTS = "planes+points"
+    """One robust estimate: the planes fixed some directions, keypoints, corners or edge
+    ends the rest."""
+    POINTS = "points"
+    """One robust estimate in which planes fixed no direction (keypoints, corners, edges)."""
     RELOCALISED = "relocalised"
-    """Closed-form pose from corner or plane-triple hypotheses, no prediction needed."""
+    """Whole-map search (corner, plane-triple, edge and keypoint hypotheses), no
+    prediction needed."""
     PLANES_ODOMETRY = "planes+odometry"
     """Planes fixed some directions, RGB-D odometry the rest."""
     PLANES_ICP = "planes+icp"
@@ -37,9 +43,9 @@ class TrackingPath(str, enum.Enum):
     @property
     def maps(self) -> bool:
         """Whether the pose is accurate enough to go into the map or the graph: fixed by
-        the map's planes and corners, or by planes completed by RGB-D odometry (ICP-filled
-        directions were 1.5-2 cm off on the synthetic scenes; odometry from a plane pose
-        within 0.1 mm)."""
+        the map's planes, corners, edges and keypoints in one estimate, or by planes
+        completed by RGB-D odometry (ICP-filled directions were 1.5-2 cm off on the
+        synthetic scenes; odometry from a plane pose within 0.1 mm)."""
         return self in _MAPPING_PATHS
 
 
@@ -49,6 +55,8 @@ _MAPPING_PATHS = frozenset(
         TrackingPath.PLANES,
         TrackingPath.RELOCALISED,
         TrackingPath.PLANES_ODOMETRY,
+        TrackingPath.PLANES_POINTS,
+        TrackingPath.POINTS,
     }
 )
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
 
 import numpy as np
 
 from planeslam.core.errors import DatasetFormatError
 from planeslam.core.geometry import pose_from_quat, quat_from_pose
+from planeslam.core.safe_files import LineWriter
 from planeslam.io.tum_text import row_error, tum_rows
 
 
@@ -42,15 +42,21 @@ class Trajectory:
         return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum())
 
 
+QUATERNION_NORM_TOLERANCE = 0.01
+"""|norm - 1| allowed for a TUM row's quaternion (files round to 4 decimals or more);
+farther off, the columns are not what the format says."""
+
+
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file ('timestamp tx ty tz qx qy qz qw' rows), sorted by time.
 
-    Raises DatasetFormatError naming the file and line on a malformed row, and on a
-    missing file or one with no poses.
+    Raises DatasetFormatError naming the file and line on a malformed row (not 8 finite
+    numbers, a quaternion far from unit norm), and on a missing file or one with no poses.
     """
     path = Path(path)
     expected = "timestamp tx ty tz qx qy qz qw"
     rows: list[list[float]] = []
+    linenos: list[int] = []
     for lineno, fields in tum_rows(path, "trajectory", expected, entries="poses"):
         try:
             values = [float(p) for p in fields]
@@ -59,11 +65,16 @@ def read_tum(path: str | Path) -> Trajectory:
         if len(values) != 8 or not np.all(np.isfinite(values)):
             raise row_error(path, lineno, f"8 numbers '{expected}'", fields)
         rows.append(values)
+        linenos.append(lineno)
     data = np.asarray(rows)
     norms = np.linalg.norm(data[:, 4:8], axis=1)
-    if np.any(norms < 1e-6):
-        bad = int(np.argmin(norms))
-        raise DatasetFormatError(f"{path}: row {bad + 1} has a zero quaternion")
+    off = np.abs(norms - 1.0)
+    if np.any(off > QUATERNION_NORM_TOLERANCE):
+        bad = int(np.argmax(off))
+        raise DatasetFormatError(
+            f"{path}:{linenos[bad]}: quaternion qx qy qz qw has norm {norms[bad]:.4g}, expected "
+            f"a unit quaternion (rows '{expected}')"
+        )
     order = np.argsort(data[:, 0], kind="stable")
     data = data[order]
     return Trajectory(timestamps=data[:, 0], T_world_cam=pose_from_quat(data[:, 1:4], data[:, 4:8]))
@@ -84,24 +95,21 @@ def write_tum(path: str | Path, trajectory: Trajectory, header: str = "") -> Non
 
 
 class TumWriter:
-    """Append poses to a TUM file as they are estimated, flushing each row,
-    so an interrupted run keeps every pose it wrote."""
+    """Append poses to a TUM file as they are estimated, each row whole on disk as soon as
+    it is written (`LineWriter`), so an interrupted or killed run keeps every pose it wrote."""
 
     def __init__(self, path: str | Path, header: str = "") -> None:
         self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh: TextIO = open(self.path, "w", encoding="utf-8")
+        self._lines = LineWriter(self.path)
         for line in header.splitlines() if header else []:
-            self._fh.write(f"# {line}\n")
-        self._fh.write("# timestamp tx ty tz qx qy qz qw\n")
-        self._fh.flush()
+            self._lines.write_line(f"# {line}")
+        self._lines.write_line("# timestamp tx ty tz qx qy qz qw")
 
     def write(self, timestamp: float, T_world_cam: np.ndarray) -> None:
-        self._fh.write(format_tum_row(timestamp, T_world_cam))
-        self._fh.flush()
+        self._lines.write_line(format_tum_row(timestamp, T_world_cam).rstrip("\n"))
 
     def close(self) -> None:
-        self._fh.close()
+        self._lines.close()
 
     def __enter__(self) -> TumWriter:
         return self

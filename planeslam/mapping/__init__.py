@@ -10,7 +10,7 @@ merge            the paper's frame-by-frame merge (Section 4.4)
 reaggregation    the map graph and its objects (paper 4.2-4.3 on the merged map)
 geometry_update  optimised landmarks from the backend written into the map
 json_io          map files, schema 'planeslam.map/1'
-ply_export       a coloured PLY of the plane polygons and the sparse cloud
+ply_export       PLY files: the plane polygons (a coloured mesh), the sparse cloud (points)
 memory           bytes per part
 world_map        `Map`: read access, and each operation handed to its module
 """

@@ -23,6 +23,24 @@ class MapConfig:
     derive_corners: bool = True
     """Re-aggregation also adds the trihedral corners of the merged map graph that no single
     frame saw (three edges observed in different frames), as the paper's re-initialisation."""
+    consolidate: bool = True
+    """An observed plane that data association left unmatched joins a map plane that is the
+    same plane segment (the gates below) instead of becoming a new one: one landmark per
+    physical plane segment, and a revisit adds none."""
+    consolidate_max_sigmas: float = 3.0
+    """Same plane: the map plane, seen from the frame's pose, within this many standard
+    deviations of the observed plane's fit (tangent normal and offset) ..."""
+    consolidate_pose_sigma_rad: float = 0.005
+    """... whose covariance is widened by this rotation uncertainty of the pose [rad] ..."""
+    consolidate_pose_sigma_m: float = 0.005
+    """... and this translation uncertainty [m]; ..."""
+    consolidate_max_angle_deg: float = 10.0
+    """... normals within this at most [deg] ..."""
+    consolidate_max_offset_m: float = 0.05
+    """... the observed centroid within this of the map plane at most [m] ..."""
+    consolidate_max_gap_m: float = 0.10
+    """... and outlines (convex hulls on the map plane) overlapping or at most this far
+    apart [m]."""
 
     def __post_init__(self) -> None:
         if not (isinstance(self.voxel_m, (int, float)) and self.voxel_m > 0):
@@ -42,6 +60,19 @@ class MapConfig:
         ):
             raise ConfigError(
                 f"map.min_observations must be a whole number >= 1, got {self.min_observations!r}"
+            )
+        for name in (
+            "consolidate_max_sigmas",
+            "consolidate_pose_sigma_rad",
+            "consolidate_pose_sigma_m",
+            "consolidate_max_angle_deg",
+            "consolidate_max_offset_m",
+        ):
+            if not float(getattr(self, name)) > 0:
+                raise ConfigError(f"map.{name} must be > 0, got {getattr(self, name)!r}")
+        if not float(self.consolidate_max_gap_m) >= 0:
+            raise ConfigError(
+                f"map.consolidate_max_gap_m must be >= 0 [m], got {self.consolidate_max_gap_m!r}"
             )
         if not isinstance(self.derive_corners, bool):
             raise ConfigError(

@@ -5,8 +5,6 @@ the same map always gives the same bytes."""
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import asdict
 from pathlib import Path
@@ -16,6 +14,7 @@ import numpy as np
 
 from planeslam.core.config import from_mapping
 from planeslam.core.errors import MapError
+from planeslam.core.safe_files import atomic_output
 from planeslam.frontend.config import ObjectConfig
 from planeslam.frontend.objects import MAP_SCHEMA
 from planeslam.mapping.config import MapConfig
@@ -133,18 +132,11 @@ def contents_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> MapCo
 
 
 def save_json(data: Mapping[str, Any], path: str | Path) -> Path:
-    """Write a map dict as compact JSON, atomically (temp file then os.replace); returns
-    the path."""
+    """Write a map dict as compact JSON, atomically (temp file then os.replace, the usual
+    file mode); returns the path."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(data, fh, separators=SEPARATORS)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(data, fh, separators=SEPARATORS)
     return path
 
 

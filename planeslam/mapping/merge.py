@@ -28,8 +28,17 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from planeslam.core.errors import AssociationError, MapError
-from planeslam.core.geometry import as_pose, transform_plane, unit
+from planeslam.core.geometry import (
+    as_pose,
+    convex_hull_2d,
+    convex_polygon_gap,
+    plane_basis,
+    tangent_basis,
+    transform_plane,
+    unit,
+)
 from planeslam.core.plane_fit import merge_moments, plane_from_moments
+from planeslam.frontend.types import Plane
 from planeslam.mapping.contents import MapContents
 from planeslam.mapping.gravity import UpSource
 from planeslam.mapping.records import MapCorner, MapEdge, MapPlane
@@ -124,6 +133,9 @@ def _merge_planes(
                 ),
             )
             target = None
+        if target is None and contents.config.consolidate:
+            taken = set(to_map.values()) | set(pairs.values())
+            target = _same_plane_segment(contents, p, T, n_w, c_w, outline_w, taken)
         if target is None:
             pid = contents.new_plane_id()
             contents.planes[pid] = MapPlane(
@@ -144,6 +156,52 @@ def _merge_planes(
             )
         to_map[k] = pid
     return to_map
+
+
+def _same_plane_segment(
+    contents: MapContents,
+    plane: Plane,
+    T: np.ndarray,
+    n_w: np.ndarray,
+    c_w: np.ndarray,
+    outline_w: np.ndarray,
+    taken: set[int],
+) -> int | None:
+    """The map plane (not in `taken`) that the observed `plane` (camera frame; seen from
+    T_world_cam `T`; n_w, centroid c_w (3,) and outline (K, 3) in the world frame) is a part
+    of, or None. Same plane: the map plane, moved to the camera, within
+    `consolidate_max_sigmas` of the observation in its own fit covariance (tangent normal,
+    offset; widened by the pose uncertainty), within the angle and offset caps; then the
+    outlines overlapping or nearest within `consolidate_max_gap_m`."""
+    cfg = contents.config
+    ids = [pid for pid in contents.planes if pid not in taken]
+    if not ids:
+        return None
+    planes = [contents.planes[pid] for pid in ids]
+    normals = np.stack([p.normal for p in planes])
+    offsets = np.array([p.d for p in planes])
+    n_cam = normals @ T[:3, :3]  # rows R^T n: the map planes in the camera frame
+    d_cam = offsets + normals @ T[:3, 3]
+    error = np.column_stack([n_cam @ tangent_basis(plane.normal), d_cam - plane.d])
+    floor = np.array([cfg.consolidate_pose_sigma_rad] * 2 + [cfg.consolidate_pose_sigma_m])
+    information = np.linalg.inv(np.asarray(plane.covariance) + np.diag(floor**2))
+    mahalanobis2 = np.einsum("mi,ij,mj->m", error, information, error)
+    close = (
+        (mahalanobis2 <= cfg.consolidate_max_sigmas**2)
+        & (normals @ n_w >= math.cos(math.radians(cfg.consolidate_max_angle_deg)))
+        & (np.abs(normals @ c_w + offsets) <= cfg.consolidate_max_offset_m)
+    )
+    best, best_gap = None, cfg.consolidate_max_gap_m
+    for row in np.flatnonzero(close):
+        candidate = planes[row]
+        axes, foot = plane_basis(candidate.normal), -candidate.d * candidate.normal
+        gap = convex_polygon_gap(
+            convex_hull_2d((candidate.outline - foot) @ axes.T),
+            convex_hull_2d((outline_w - foot) @ axes.T),
+        )
+        if gap <= best_gap:
+            best, best_gap = ids[row], gap
+    return best
 
 
 def _refit_plane(

@@ -1,8 +1,10 @@
-"""The map as one binary PLY: plane polygons coloured by object, then the sparse cloud."""
+"""The map as two binary PLY files: the plane polygons coloured by object as a mesh
+(map_planes.ply), and the sparse cloud as a point cloud (map_points.ply)."""
 
 from __future__ import annotations
 
 import colorsys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,13 +34,24 @@ def plane_colors(contents: MapContents) -> dict[int, np.ndarray]:
     return colors
 
 
-def write_ply(contents: MapContents, path: str | Path) -> Path:
-    """One binary little-endian PLY: each plane's outline as a triangle fan about its mean
-    vertex, coloured by object (`plane_colors`), followed by the sparse cloud as
-    unreferenced vertices with their colours. Open3D reads it as a TriangleMesh
-    (read_triangle_mesh) or as a point cloud of all vertices (read_point_cloud)."""
+@dataclass(frozen=True)
+class PlaneMesh:
+    """The map's plane polygons as triangles, world frame: each plane's outline as a fan
+    about its mean vertex, coloured by object (`plane_colors`)."""
+
+    vertices: np.ndarray
+    """(V, 3) float64 [m]."""
+    colors: np.ndarray
+    """(V, 3) uint8 RGB."""
+    triangles: np.ndarray
+    """(F, 3) int64 vertex indices; every vertex is used by a face."""
+
+
+def plane_mesh(contents: MapContents) -> PlaneMesh:
+    """The map's plane polygons as a `PlaneMesh` (planes with fewer than 3 outline
+    points are left out)."""
     colors = plane_colors(contents)
-    verts, vcols, faces = [], [], []
+    verts, vcols, faces = [np.zeros((0, 3))], [np.zeros((0, 3), np.uint8)], [np.zeros((0, 3))]
     base = 0
     for p in contents.planes.values():
         ring = p.outline
@@ -50,31 +63,68 @@ def write_ply(contents: MapContents, path: str | Path) -> Path:
         k = np.arange(m)
         faces.append(base + np.stack([np.full(m, m), k, (k + 1) % m], axis=1))
         base += m + 1
-    verts.append(contents.cloud.points)
-    vcols.append(contents.cloud.colors)
-    v = np.concatenate(verts)
-    c = np.concatenate(vcols).astype(np.uint8)
-    f = np.concatenate(faces) if faces else np.zeros((0, 3), dtype=np.int64)
-    vrec = np.empty(len(v), dtype=_VERTEX)
-    for name, col in zip(("x", "y", "z"), v.T, strict=True):
+    return PlaneMesh(
+        vertices=np.concatenate(verts).astype(np.float64),
+        colors=np.concatenate(vcols).astype(np.uint8),
+        triangles=np.concatenate(faces).astype(np.int64),
+    )
+
+
+def write_planes_ply(contents: MapContents, path: str | Path) -> Path:
+    """The plane polygons (`plane_mesh`) as one binary little-endian PLY mesh; every vertex
+    is used by a face, so cleaning tools (Open3D's `remove_unreferenced_vertices`,
+    MeshLab) keep them all. World frame [m]."""
+    mesh = plane_mesh(contents)
+    return _write_ply(
+        path,
+        mesh.vertices,
+        mesh.colors,
+        mesh.triangles,
+        "planeslam map: plane polygons coloured by object (triangle fans), world frame",
+    )
+
+
+def write_points_ply(contents: MapContents, path: str | Path) -> Path:
+    """The sparse non-planar cloud as one binary little-endian PLY point cloud (vertices
+    with colours, no faces), world frame [m]."""
+    return _write_ply(
+        path,
+        contents.cloud.points,
+        contents.cloud.colors,
+        None,
+        "planeslam map: sparse cloud of what is not planar (voxel means), world frame",
+    )
+
+
+def _write_ply(
+    path: str | Path,
+    vertices: np.ndarray,
+    colors: np.ndarray,
+    faces: np.ndarray | None,
+    comment: str,
+) -> Path:
+    """(V, 3) float vertices [m] with (V, 3) uint8 colours and, for a mesh, (F, 3) vertex
+    indices of triangles (None: a point cloud, no face element)."""
+    vrec = np.empty(len(vertices), dtype=_VERTEX)
+    for name, col in zip(("x", "y", "z"), np.asarray(vertices).T, strict=True):
         vrec[name] = col
-    for name, col in zip(("red", "green", "blue"), c.T, strict=True):
+    for name, col in zip(("red", "green", "blue"), np.asarray(colors, np.uint8).T, strict=True):
         vrec[name] = col
-    frec = np.empty(len(f), dtype=_FACE)
-    frec["n"] = 3
-    frec["v"] = f
     header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        "comment planeslam map: plane polygons coloured by object, then the sparse cloud\n"
-        f"element vertex {len(v)}\n"
+        f"ply\nformat binary_little_endian 1.0\ncomment {comment}\n"
+        f"element vertex {len(vrec)}\n"
         "property float x\nproperty float y\nproperty float z\n"
         "property uchar red\nproperty uchar green\nproperty uchar blue\n"
-        f"element face {len(f)}\nproperty list uchar int vertex_indices\nend_header\n"
     )
+    frec = np.empty(0 if faces is None else len(faces), dtype=_FACE)
+    if faces is not None:
+        frec["n"] = 3
+        frec["v"] = faces
+        header += f"element face {len(frec)}\nproperty list uchar int vertex_indices\n"
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "wb") as fh:
-        fh.write(header.encode("ascii"))
+        fh.write((header + "end_header\n").encode("ascii"))
         fh.write(vrec.tobytes())
         fh.write(frec.tobytes())
     return path

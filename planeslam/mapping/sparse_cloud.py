@@ -1,5 +1,6 @@
-"""The map's sparse cloud for what is not planar: one running-mean point and colour per
-voxel, world frame, capped to the best-supported voxels."""
+"""Voxelised clouds, world frame: the map's sparse cloud for what is not planar (one
+running-mean point and colour per voxel, capped to the best-supported voxels), and the
+size of the dense point-cloud map the plane map is compared with (`FusedCloudSize`)."""
 
 from __future__ import annotations
 
@@ -114,3 +115,39 @@ def _sum_by(inv: np.ndarray, values: np.ndarray, groups: int) -> np.ndarray:
     return np.stack(
         [np.bincount(inv, weights=values[:, i], minlength=groups) for i in range(3)], axis=1
     )
+
+
+class FusedCloudSize:
+    """How many voxels of `voxel_m` the frames' points fill once fused (world frame): the
+    size of a voxel-downsampled point-cloud map, the fair thing to compare a map with.
+
+    Keys are merged in batches (`flush_every` additions) to keep each addition cheap."""
+
+    def __init__(self, voxel_m: float = 0.01, flush_every: int = 16) -> None:
+        if not voxel_m > 0:
+            raise MapError(f"voxel_m must be > 0 [m], got {voxel_m!r}")
+        self.voxel_m = voxel_m
+        self._flush_every = flush_every
+        self._keys = np.zeros(0, dtype=np.int64)
+        self._pending: list[np.ndarray] = []
+
+    def add(self, points_world: np.ndarray) -> None:
+        """(N, 3) points [m]; non-finite rows are ignored."""
+        points = np.asarray(points_world, dtype=np.float64).reshape(-1, 3)
+        points = points[np.all(np.isfinite(points), axis=1)]
+        keys = np.floor(points / self.voxel_m).astype(np.int64)
+        keys = keys[np.all(np.abs(keys) < _KEY_OFFSET, axis=1)]
+        self._pending.append(np.unique(_pack(keys)))
+        if len(self._pending) >= self._flush_every:
+            self._flush()
+
+    @property
+    def voxels(self) -> int:
+        """Occupied voxels so far."""
+        self._flush()
+        return len(self._keys)
+
+    def _flush(self) -> None:
+        if self._pending:
+            self._keys = np.unique(np.concatenate([self._keys, *self._pending]))
+            self._pending = []

@@ -8,7 +8,8 @@ data association (`merge`: the paper's merge), then re-aggregates and re-classif
 objects with the map's up vector (`reaggregation`, `gravity`). `update_geometry`
 writes optimised landmarks from the GTSAM backend into the map (`geometry_update`).
 `save` / `load` / `to_dict` / `from_dict` use the schema 'planeslam.map/1'
-(`json_io`); `write_ply` exports a coloured mesh (`ply_export`); `memory_bytes` sizes
+(`json_io`); `write_planes_ply` / `write_points_ply` export the planes as a coloured
+mesh and the sparse cloud as a point cloud (`ply_export`); `memory_bytes` sizes
 the map (`memory`).
 
 Ids: plane and corner ids are monotonic and never reused (also across a save/load);
@@ -273,10 +274,20 @@ class Map:
         plane area for a plane in several); grey for planes in no object."""
         return ply_export.plane_colors(self._contents)
 
-    def write_ply(self, path: str | Path) -> Path:
-        """One binary PLY of the plane polygons coloured by object and the sparse cloud
-        (see `ply_export.write_ply`); returns the path."""
-        return ply_export.write_ply(self._contents, path)
+    def plane_mesh(self) -> ply_export.PlaneMesh:
+        """The plane polygons as triangle fans coloured by object, world frame (see
+        `ply_export.plane_mesh`)."""
+        return ply_export.plane_mesh(self._contents)
+
+    def write_planes_ply(self, path: str | Path) -> Path:
+        """The plane polygons coloured by object as a binary PLY mesh (see
+        `ply_export.write_planes_ply`); returns the path."""
+        return ply_export.write_planes_ply(self._contents, path)
+
+    def write_points_ply(self, path: str | Path) -> Path:
+        """The sparse cloud as a binary PLY point cloud (see `ply_export.write_points_ply`);
+        returns the path."""
+        return ply_export.write_points_ply(self._contents, path)
 
     def memory_bytes(self, encoding: Literal["arrays", "json"] = "arrays") -> dict[str, int]:
         """Bytes of the compact map per part: planes, edges, corners, objects, sparse_cloud,

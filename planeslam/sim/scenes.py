@@ -15,7 +15,9 @@ third column.
 
 The named scenes (`box_room_circle`, `room_boxes_loop`, `zigzag_panels`)
 each return the scene and a camera `Trajectory` (T_world_cam, camera frame
-x right, y down, z forward).
+x right, y down, z forward). `SceneOptions` varies a named scene without
+changing its geometry: the camera's height, the point it looks at, where
+the path starts, and the surfaces' appearance (`Texture`).
 """
 
 from __future__ import annotations
@@ -229,13 +231,47 @@ class Scene:
         )
 
 
-def _appearance(texture_seed: int, plane_id: int) -> tuple[np.ndarray, float, int]:
-    gen = np.random.default_rng([texture_seed, plane_id])
+@dataclass(frozen=True)
+class Texture:
+    """Appearance of a scene's planes: each plane draws a hue, a brightness and a texture
+    cell size from a generator seeded with (`seed`, plane id), so a plane looks the same
+    in every frame and every run."""
+
+    seed: int = 0
+    """Seed of the per-plane draws."""
+    brightness: tuple[float, float] = (0.6, 0.6)
+    """Range of a plane's mean albedo (the mean of its RGB reflectances) in (0, 1]; each
+    channel is that mean plus a hue of amplitude 0.35, clipped to [0.03, 0.95]."""
+    cell_m: tuple[float, float] = (0.02, 0.05)
+    """Range of the texture's cell size [m] (the pattern is a hash of cells plus a
+    checkerboard of 4 x 4 cells)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "brightness", tuple(float(v) for v in self.brightness))
+        object.__setattr__(self, "cell_m", tuple(float(v) for v in self.cell_m))
+        lo, hi = self.brightness if len(self.brightness) == 2 else (np.nan, np.nan)
+        if not 0.0 < lo <= hi <= 1.0:
+            raise ConfigError(
+                f"texture.brightness must be [low, high] with 0 < low <= high <= 1, "
+                f"got {list(self.brightness)}"
+            )
+        lo, hi = self.cell_m if len(self.cell_m) == 2 else (np.nan, np.nan)
+        if not 0.0 < lo <= hi:
+            raise ConfigError(
+                f"texture.cell_m must be [low, high] with 0 < low <= high [m], "
+                f"got {list(self.cell_m)}"
+            )
+
+
+def _appearance(texture: Texture, plane_id: int) -> tuple[np.ndarray, float, int]:
+    gen = np.random.default_rng([texture.seed, plane_id])
     hue = Rotation.from_rotvec(np.array([1.0, 1.0, 1.0]) / np.sqrt(3) * gen.uniform(0, 2 * np.pi))
-    albedo = 0.6 + 0.35 * hue.apply(np.array([0.6, -0.3, -0.3]))
-    cell = float(gen.uniform(0.02, 0.05))
+    cell = float(gen.uniform(*texture.cell_m))
     salt = int(gen.integers(1, 2**20))
-    return np.clip(albedo, 0.15, 0.95), cell, salt
+    # Drawn last, so the hue, cell and salt of a seed do not depend on the brightness range.
+    brightness = float(gen.uniform(*texture.brightness))
+    albedo = brightness + 0.35 * hue.apply(np.array([0.6, -0.3, -0.3]))
+    return np.clip(albedo, 0.03, 0.95), cell, salt
 
 
 def _box_faces(box: Box) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
@@ -259,11 +295,12 @@ def make_scene(
     name: str,
     boxes: tuple[Box, ...] = (),
     structures: tuple[Structure, ...] = (),
-    texture_seed: int = 0,
+    texture: Texture | int = 0,
 ) -> Scene:
     """Compile boxes and structures into planes (ids in order: boxes, then structures),
-    objects, true edges and true corners. Appearance is a fixed function of
-    (`texture_seed`, plane id)."""
+    objects, true edges and true corners. Appearance is a fixed function of the
+    `texture` (a `Texture`, or just its seed) and the plane id."""
+    texture = texture if isinstance(texture, Texture) else Texture(seed=int(texture))
     planes: list[ScenePlane] = []
     objects: list[SceneObject] = []
     raw: list[tuple[int, str, np.ndarray, np.ndarray, np.ndarray, np.ndarray, bool]] = []
@@ -305,7 +342,7 @@ def make_scene(
         size = tuple(sorted(extent.tolist(), reverse=True))
         objects.append(SceneObject(obj_id, struct.name, "structure", tuple(ids), size))
     for pid, (obj_id, pname, normal, centre, axes, half, two_sided) in enumerate(raw):
-        albedo, cell, salt = _appearance(texture_seed, pid)
+        albedo, cell, salt = _appearance(texture, pid)
         normal = normal / np.linalg.norm(normal)
         planes.append(
             ScenePlane(
@@ -439,6 +476,39 @@ def apply_shake(T_world_cam: np.ndarray, dt_m: np.ndarray, drot_rad: np.ndarray)
     return out
 
 
+@dataclass(frozen=True)
+class SceneOptions:
+    """Variations of a named scene (`get_scene`): where the camera goes and what the
+    surfaces look like; the geometry and its truth stay the same. None keeps the scene's
+    own value."""
+
+    camera_height_m: float | None = None
+    """Camera height above the floor [m] (the mean height where the path undulates)."""
+    target_height_m: float | None = None
+    """Height above the floor of the points the camera looks at [m]."""
+    start_azimuth_deg: float | None = None
+    """`box_room_circle` only: azimuth of the first pose on the circle [deg] (0: on the
+    world x axis, looking square at the box's +x face)."""
+    texture: Texture | None = None
+    """Appearance of the planes (default: the scene's own seed and ranges)."""
+
+    def __post_init__(self) -> None:
+        for name in ("camera_height_m", "target_height_m", "start_azimuth_deg"):
+            value = getattr(self, name)
+            if value is not None and not np.isfinite(float(value)):
+                raise ConfigError(f"scene options: {name} must be a finite number, got {value!r}")
+        if self.camera_height_m is not None and self.camera_height_m <= 0:
+            raise ConfigError(
+                f"scene options: camera_height_m must be > 0 m, got {self.camera_height_m}"
+            )
+
+    def reject(self, scene: str, *names: str) -> None:
+        """ConfigError when any of the option `names` is set: `scene` does not take it."""
+        given = [n for n in names if getattr(self, n) is not None]
+        if given:
+            raise ConfigError(f"scene {scene!r} does not take the option(s) {', '.join(given)}")
+
+
 def _check_frames(frames: int | None, default: int) -> int:
     n = default if frames is None else frames
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
@@ -450,7 +520,9 @@ def _check_frames(frames: int | None, default: int) -> int:
 
 
 def box_room_circle(
-    frames: int | None = None, rng: np.random.Generator | None = None
+    frames: int | None = None,
+    rng: np.random.Generator | None = None,
+    options: SceneOptions | None = None,
 ) -> tuple[Scene, Trajectory]:
     """The paper's second experiment (Section 5): a box in a small square room.
 
@@ -467,20 +539,28 @@ def box_room_circle(
     circle excludes about 12 deg either side of the box's x axis and 16 deg
     either side of its y axis, so 14 of the 24 default views show three box
     faces with measured depth. One frame per step, 1 s apart from t = 0.
-    `rng` is unused (the path is exact).
+    `rng` is unused (the path is exact). `options` change the camera height
+    (0.50 m), the look-at height (0.05 m), the first azimuth (7.5 deg) and the
+    texture (seed 1).
     """
     n = _check_frames(frames, 24)
+    opt = options or SceneOptions()
     room = Box("room", np.array((0.0, 0.0, 0.55)), np.array((1.88, 1.88, 1.10)), kind="room")
     box = Box("box", np.array((0.0, 0.0, 0.095)), np.array((0.38, 0.29, 0.19)), omit_faces=("-z",))
-    scene = make_scene("box_room_circle", (room, box), texture_seed=1)
-    azimuth = np.deg2rad(7.5) + 2 * np.pi * np.arange(n) / n
-    eye = np.stack([0.7 * np.cos(azimuth), 0.7 * np.sin(azimuth), np.full(n, 0.50)], axis=1)
-    target = np.tile([0.0, 0.0, 0.05], (n, 1))
+    scene = make_scene("box_room_circle", (room, box), texture=opt.texture or 1)
+    start = 7.5 if opt.start_azimuth_deg is None else opt.start_azimuth_deg
+    eye_height = 0.50 if opt.camera_height_m is None else opt.camera_height_m
+    look_height = 0.05 if opt.target_height_m is None else opt.target_height_m
+    azimuth = np.deg2rad(start) + 2 * np.pi * np.arange(n) / n
+    eye = np.stack([0.7 * np.cos(azimuth), 0.7 * np.sin(azimuth), np.full(n, eye_height)], axis=1)
+    target = np.tile([0.0, 0.0, look_height], (n, 1))
     return scene, Trajectory(np.arange(n, dtype=np.float64), look_at(eye, target))
 
 
 def room_boxes_loop(
-    frames: int | None = None, rng: np.random.Generator | None = None
+    frames: int | None = None,
+    rng: np.random.Generator | None = None,
+    options: SceneOptions | None = None,
 ) -> tuple[Scene, Trajectory]:
     """A 4 x 3.5 x 2.5 m room with four boxes and a hand-held loop at 30 Hz.
 
@@ -493,10 +573,15 @@ def room_boxes_loop(
     smooth periodic noise of about 8 mm and 0.5 deg RMS at harmonics 6-25 of
     the loop, so the path is smooth and returns exactly to its start:
     frame i has loop phase i / (frames - 1); the last pose equals the first
-    (a loop closure). Default 300 frames, 30 Hz from t = 0.
+    (a loop closure). Default 300 frames, 30 Hz from t = 0. `options` change the
+    mean camera height (1.45 m), the look-at height (0.6 m) and the texture (seed 2).
     """
     n = _check_frames(frames, 300)
     rng = rng if rng is not None else np.random.default_rng(0)
+    opt = options or SceneOptions()
+    opt.reject("room_boxes_loop", "start_azimuth_deg")
+    eye_height = 1.45 if opt.camera_height_m is None else opt.camera_height_m
+    look_height = 0.6 if opt.target_height_m is None else opt.target_height_m
     room = Box("room", np.array((0.0, 0.0, 1.25)), np.array((4.0, 3.5, 2.5)), kind="room")
     boxes = (
         room,
@@ -529,12 +614,12 @@ def room_boxes_loop(
             omit_faces=("-z",),
         ),
     )
-    scene = make_scene("room_boxes_loop", boxes, texture_seed=2)
+    scene = make_scene("room_boxes_loop", boxes, texture=opt.texture or 2)
     phase = np.arange(n) / max(n - 1, 1)
     a = 2 * np.pi * phase
-    eye = np.stack([1.1 * np.cos(a), 0.8 * np.sin(a), 1.45 + 0.1 * np.sin(2 * a)], axis=1)
+    eye = np.stack([1.1 * np.cos(a), 0.8 * np.sin(a), eye_height + 0.1 * np.sin(2 * a)], axis=1)
     b = a + np.deg2rad(150.0)
-    target = np.stack([0.7 * np.cos(b), 0.5 * np.sin(b), np.full(n, 0.6)], axis=1)
+    target = np.stack([0.7 * np.cos(b), 0.5 * np.sin(b), np.full(n, look_height)], axis=1)
     T = look_at(eye, target)
     T = apply_shake(
         T, periodic_shake(phase, rng, 0.008, (6, 25)), periodic_shake(phase, rng, 0.009, (6, 25))
@@ -543,7 +628,9 @@ def room_boxes_loop(
 
 
 def zigzag_panels(
-    frames: int | None = None, rng: np.random.Generator | None = None
+    frames: int | None = None,
+    rng: np.random.Generator | None = None,
+    options: SceneOptions | None = None,
 ) -> tuple[Scene, Trajectory]:
     """A zig-zag of four panels standing on the floor (like TUM fr3/structure_texture_far).
 
@@ -554,10 +641,15 @@ def zigzag_panels(
     [-1.53, 1.53] m; neighbours share a vertical edge. Camera: about 2.2 m in
     front of it (y = -2.2 m) at 1.3 m height, looking at the structure about
     20 deg down, moving sideways from x = -0.9 to +0.9 m at 30 Hz with seeded
-    hand-shake of about 5 mm and 0.4 deg RMS. Default 150 frames (5 s).
+    hand-shake of about 5 mm and 0.4 deg RMS. Default 150 frames (5 s). `options`
+    change the camera height (1.3 m), the look-at height (0.5 m) and the texture (seed 3).
     """
     n = _check_frames(frames, 150)
     rng = rng if rng is not None else np.random.default_rng(0)
+    opt = options or SceneOptions()
+    opt.reject("zigzag_panels", "start_azimuth_deg")
+    eye_height = 1.3 if opt.camera_height_m is None else opt.camera_height_m
+    look_height = 0.5 if opt.target_height_m is None else opt.target_height_m
     room = Box("room", np.array((0.0, 0.0, 1.5)), np.array((10.0, 8.0, 3.0)), kind="room")
     angle = np.deg2rad(40.0)
     width, height = 1.0, 0.8
@@ -576,11 +668,13 @@ def zigzag_panels(
         R = np.stack([u, v, normal], axis=1)
         centre = (p0 + p1) / 2 + v * height / 2
         panels.append(Panel(f"panel_{k}", centre, np.array((width, height)), R))
-    scene = make_scene("zigzag_panels", (room,), (Structure("zigzag", tuple(panels)),), 3)
+    scene = make_scene(
+        "zigzag_panels", (room,), (Structure("zigzag", tuple(panels)),), opt.texture or 3
+    )
     phase = np.arange(n) / max(n - 1, 1)
     x = -0.9 + 1.8 * phase
-    eye = np.stack([x, np.full(n, -2.2), np.full(n, 1.3)], axis=1)
-    target = np.stack([0.6 * x, np.full(n, 0.3), np.full(n, 0.5)], axis=1)
+    eye = np.stack([x, np.full(n, -2.2), np.full(n, eye_height)], axis=1)
+    target = np.stack([0.6 * x, np.full(n, 0.3), np.full(n, look_height)], axis=1)
     T = look_at(eye, target)
     T = apply_shake(
         T, periodic_shake(phase, rng, 0.005, (3, 12)), periodic_shake(phase, rng, 0.007, (3, 12))
@@ -588,20 +682,26 @@ def zigzag_panels(
     return scene, Trajectory(np.arange(n) / 30.0, T)
 
 
-SceneFactory = Callable[[int | None, np.random.Generator | None], tuple[Scene, Trajectory]]
+SceneFactory = Callable[
+    [int | None, np.random.Generator | None, SceneOptions | None], tuple[Scene, Trajectory]
+]
 
 SCENES: dict[str, SceneFactory] = {
     "box_room_circle": box_room_circle,
     "room_boxes_loop": room_boxes_loop,
     "zigzag_panels": zigzag_panels,
 }
-"""Scene name -> factory(frames, rng) returning (scene, trajectory)."""
+"""Scene name -> factory(frames, rng, options) returning (scene, trajectory)."""
 
 
 def get_scene(
-    name: str, frames: int | None = None, rng: np.random.Generator | None = None
+    name: str,
+    frames: int | None = None,
+    rng: np.random.Generator | None = None,
+    options: SceneOptions | None = None,
 ) -> tuple[Scene, Trajectory]:
-    """Build a named scene and its trajectory; ConfigError listing the names when unknown."""
+    """Build a named scene and its trajectory; ConfigError listing the names when unknown,
+    or naming an option the scene does not take."""
     if name not in SCENES:
         raise ConfigError(f"unknown scene {name!r}; scenes: {', '.join(SCENES)}")
-    return SCENES[name](frames, rng)
+    return SCENES[name](frames, rng, options)

@@ -26,7 +26,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from planeslam.core.errors import AssociationError
-from planeslam.core.geometry import as_pose, convex_hull_2d, plane_basis, polygon_area
+from planeslam.core.geometry import (
+    as_pose,
+    clip_convex_polygon,
+    convex_hull_2d,
+    plane_basis,
+    polygon_area,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -66,11 +72,34 @@ def _offsets(name: str, d: np.ndarray, n: int) -> np.ndarray:
     return d
 
 
-def _gate(name: str, value: float) -> float:
-    value = float(value)
-    if not value > 0:
-        raise AssociationError(f"{name} = {value}, expected a positive gate")
-    return value
+Gate = float | np.ndarray
+"""A gate: one value for every observation, or (N,) values, one per observation."""
+
+
+def _gate(name: str, value: Gate, n: int | None = None) -> Gate:
+    """A positive scalar gate as a float, or a (n,) array of positive per-observation gates."""
+    if np.ndim(value) == 0:
+        scalar = float(value)
+        if not scalar > 0:
+            raise AssociationError(f"{name} = {scalar}, expected a positive gate")
+        return scalar
+    gates = np.asarray(value, dtype=np.float64)
+    if gates.shape != (n,) or not np.all(np.isfinite(gates)) or not np.all(gates > 0):
+        raise AssociationError(
+            f"{name} has shape {gates.shape}, expected a positive number or ({n},) positive "
+            "gates (one per observation)"
+        )
+    return gates
+
+
+def _per_row(gate: Gate) -> Gate:
+    """A gate broadcast over the rows (observations) of an (N, M) matrix."""
+    return gate[:, None] if isinstance(gate, np.ndarray) else gate
+
+
+def _take(gate: Gate, rows: np.ndarray) -> Gate:
+    """The gates of the observations `rows` (a scalar gate is everyone's)."""
+    return gate[rows] if isinstance(gate, np.ndarray) else gate
 
 
 def _corner_planes(name: str, ids: np.ndarray, num_planes: int) -> np.ndarray:
@@ -103,8 +132,8 @@ def plane_association_cost(
     n_obs: np.ndarray,
     d_obs: np.ndarray,
     T_map_obs: np.ndarray,
-    max_angle_rad: float,
-    max_offset_m: float,
+    max_angle_rad: Gate,
+    max_offset_m: Gate,
     overlap: np.ndarray | None = None,
     min_overlap: float = 0.0,
     overlap_weight: float = 1.0,
@@ -115,6 +144,7 @@ def plane_association_cost(
 
     n_map (M, 3), d_map (M,) in the map frame; n_obs (N, 3), d_obs (N,) in
     the observation (camera) frame; T_map_obs (4, 4) predicted pose.
+    max_angle_rad, max_offset_m: one gate, or (N,) gates, one per observed plane.
     cost = angle / max_angle + |d_obs_in_map - d_map| / max_offset
     (+ overlap_weight * (1 - overlap) when an (N, M) overlap in [0, 1] is
     given). Returns cost (N, M) and allowed (N, M) bool: angle <= max_angle,
@@ -126,18 +156,16 @@ def plane_association_cost(
     n_map, n_obs = _vectors("n_map", n_map), _vectors("n_obs", n_obs)
     d_map, d_obs = _offsets("d_map", d_map, len(n_map)), _offsets("d_obs", d_obs, len(n_obs))
     T = as_pose(T_map_obs, "T_map_obs", AssociationError)
-    max_angle_rad, max_offset_m = (
-        _gate("max_angle_rad", max_angle_rad),
-        _gate("max_offset_m", max_offset_m),
-    )
+    max_angle = _per_row(_gate("max_angle_rad", max_angle_rad, len(n_obs)))
+    max_offset = _per_row(_gate("max_offset_m", max_offset_m, len(n_obs)))
     n_obs = n_obs / np.linalg.norm(n_obs, axis=1, keepdims=True)
     n_map = n_map / np.linalg.norm(n_map, axis=1, keepdims=True)
     n_in_map = n_obs @ T[:3, :3].T
     d_in_map = d_obs - n_in_map @ T[:3, 3]
     angle = _angles(n_in_map[:, None, :], n_map[None, :, :])
     offset = np.abs(d_in_map[:, None] - d_map[None, :])
-    cost = angle / max_angle_rad + offset / max_offset_m
-    allowed = (angle <= max_angle_rad) & (offset <= max_offset_m)
+    cost = angle / max_angle + offset / max_offset
+    allowed = (angle <= max_angle) & (offset <= max_offset)
     if overlap is not None:
         overlap = np.asarray(overlap, dtype=np.float64)
         if overlap.shape != cost.shape or not np.all(np.isfinite(overlap)):
@@ -176,8 +204,8 @@ def associate_planes(
     n_obs: np.ndarray,
     d_obs: np.ndarray,
     T_map_obs: np.ndarray,
-    max_angle_rad: float,
-    max_offset_m: float,
+    max_angle_rad: Gate,
+    max_offset_m: Gate,
     overlap: np.ndarray | None = None,
     min_overlap: float = 0.0,
     overlap_weight: float = 1.0,
@@ -212,31 +240,6 @@ def associate_planes(
 # ----------------------------------------------------------------------------- outlines
 
 
-def _clip_convex(subject: np.ndarray, clip: np.ndarray) -> np.ndarray:
-    """Sutherland-Hodgman: convex (K, 2) subject clipped by a counter-clockwise convex (H, 2).
-
-    Each clip edge is one vectorised pass over the subject's edges; every
-    subject edge emits [crossing point if it crosses, end point if inside].
-    """
-    out = subject
-    for c1, c2 in zip(clip, np.roll(clip, -1, axis=0), strict=True):
-        if len(out) == 0:
-            break
-        edge = c2 - c1
-        side = edge[0] * (out[:, 1] - c1[1]) - edge[1] * (out[:, 0] - c1[0])  # >= 0: inside
-        start, end = out, np.roll(out, -1, axis=0)
-        s_side, e_side = side, np.roll(side, -1)
-        s_in, e_in = s_side >= 0, e_side >= 0
-        crosses = s_in != e_in
-        with np.errstate(divide="ignore", invalid="ignore"):
-            frac = np.where(crosses, s_side / (s_side - e_side), 0.0)
-        crossing = start + frac[:, None] * (end - start)
-        slots = np.stack([crossing, end], axis=1)  # (K, 2 slots, 2)
-        keep = np.stack([crosses, e_in], axis=1)
-        out = slots[keep]
-    return out
-
-
 def outline_overlap(outline_a: np.ndarray, outline_b: np.ndarray, n: np.ndarray, d: float) -> float:
     """Overlap in [0, 1] of two plane outlines (K, 3), (L, 3) [m] on the plane (n, d).
 
@@ -263,7 +266,7 @@ def outline_overlap(outline_a: np.ndarray, outline_b: np.ndarray, n: np.ndarray,
     smaller = min(polygon_area(hull_a), polygon_area(hull_b))
     if smaller <= 1e-12:
         return 0.0
-    inter = polygon_area(_clip_convex(hull_a, hull_b))
+    inter = polygon_area(clip_convex_polygon(hull_a, hull_b))
     return float(np.clip(inter / smaller, 0.0, 1.0))
 
 
@@ -306,9 +309,9 @@ def associate_with_corners(
     corner_planes_obs: np.ndarray,
     corner_points_obs: np.ndarray,
     T_map_obs: np.ndarray,
-    max_angle_rad: float,
-    max_offset_m: float,
-    max_corner_distance_m: float,
+    max_angle_rad: Gate,
+    max_offset_m: Gate,
+    max_corner_distance_m: Gate,
     overlap: np.ndarray | None = None,
     min_overlap: float = 0.0,
     weights: np.ndarray | None = None,
@@ -319,7 +322,9 @@ def associate_with_corners(
     Map: planes n_map (M, 3), d_map (M,); corners as plane indices
     corner_planes_map (Km, 3) and points corner_points_map (Km, 3) [m], map
     frame. Observation: the same in the camera frame ((N, 3), (N,), (Ko, 3),
-    (Ko, 3)). T_map_obs (4, 4) predicted pose.
+    (Ko, 3)). T_map_obs (4, 4) predicted pose. Gates: one value each, or one per
+    observation: max_angle_rad and max_offset_m (N,) per observed plane,
+    max_corner_distance_m (Ko,) per observed corner.
 
     1. A corner pair is allowed when the observed point, moved by T_map_obs,
        is within max_corner_distance_m of the map point and the three
@@ -350,8 +355,9 @@ def associate_with_corners(
             f"({len(cp_obs)} obs, {len(cp_map)} map) differ in count"
         )
     T = as_pose(T_map_obs, "T_map_obs", AssociationError)
-    max_angle_rad = _gate("max_angle_rad", max_angle_rad)
-    max_corner_distance_m = _gate("max_corner_distance_m", max_corner_distance_m)
+    max_angle_rad = _gate("max_angle_rad", max_angle_rad, len(n_obs))
+    max_offset_m = _gate("max_offset_m", max_offset_m, len(n_obs))
+    max_corner_distance_m = _gate("max_corner_distance_m", max_corner_distance_m, len(cp_obs))
     n_map_u = n_map / np.linalg.norm(n_map, axis=1, keepdims=True)
     n_obs_in_map = (n_obs / np.linalg.norm(n_obs, axis=1, keepdims=True)) @ T[:3, :3].T
 
@@ -373,13 +379,20 @@ def associate_with_corners(
         per_perm = angle[ko, km, np.arange(3), _PERMUTATIONS_3[None, None]]  # (Ko, Km, 6, 3)
         best = np.argmin(per_perm.sum(-1), axis=-1)  # (Ko, Km)
         best_angles = np.take_along_axis(per_perm, best[..., None, None], axis=2)[:, :, 0]
-        allowed = (dist <= max_corner_distance_m) & (best_angles.max(-1) <= max_angle_rad)
+        if isinstance(max_angle_rad, np.ndarray):  # per observed plane: (Ko, 1, 3)
+            corner_angle_gate = max_angle_rad[cp_obs][:, None, :]
+            angles_ok = np.all(best_angles <= corner_angle_gate, axis=-1)
+            angle_cost = np.mean(best_angles / corner_angle_gate, axis=-1)
+        else:
+            angles_ok = best_angles.max(-1) <= max_angle_rad
+            angle_cost = best_angles.mean(-1) / max_angle_rad
+        allowed = (dist <= _per_row(max_corner_distance_m)) & angles_ok
         if gate is not None:
             perm = _PERMUTATIONS_3[best]  # (Ko, Km, 3)
             map_rows = np.take_along_axis(np.broadcast_to(cp_map[None], perm.shape), perm, axis=2)
             obs_rows = np.broadcast_to(cp_obs[:, None, :], perm.shape)
             allowed &= np.asarray(gate, dtype=bool)[obs_rows, map_rows].all(-1)
-        cost = dist / max_corner_distance_m + best_angles.mean(-1) / max_angle_rad
+        cost = dist / _per_row(max_corner_distance_m) + angle_cost
         matched = _assign(cost, allowed)
         for k_obs, k_map in sorted(matched, key=lambda p: cost[p]):
             perm = _PERMUTATIONS_3[best[k_obs, k_map]]
@@ -409,8 +422,8 @@ def associate_with_corners(
         n_obs[free_obs],
         d_obs[free_obs],
         T,
-        max_angle_rad,
-        max_offset_m,
+        _take(max_angle_rad, free_obs),
+        _take(max_offset_m, free_obs),
         sub_overlap,
         min_overlap,
         weights=None if weights is None else np.asarray(weights, dtype=np.float64)[free_obs],

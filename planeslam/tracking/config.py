@@ -2,9 +2,95 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from planeslam.core.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class PointConfig:
+    """Keypoints with depth (ORB): detection, matching against keyframes, noise."""
+
+    enabled: bool = True
+    """Use keypoints (needs colour images) as a primitive of tracking and relocalisation."""
+    max_keypoints: int = 1000
+    """ORB keypoints per image at most."""
+    pyramid_levels: int = 8
+    """ORB pyramid levels (scale factor 1.2 between them)."""
+    fast_threshold: int = 20
+    """FAST corner threshold of ORB (intensity levels)."""
+    max_depth_m: float = 4.0
+    """Keypoints farther than this are left out [m]."""
+    max_depth_step: float = 0.03
+    """A keypoint whose 5x5 depth window spans more than this fraction of its depth lies
+    on a depth edge and is left out."""
+    sigma_px: float = 1.0
+    """Keypoint position noise across the viewing ray [pixels]."""
+    sigma_floor_m: float = 0.01
+    """Isotropic noise added to every point [m] (colour-to-depth registration, blur)."""
+    keyframe_sigma_m: float = 0.02
+    """Pose noise of a keyframe, shared by all its points [m]: the points matched with one
+    keyframe together constrain a pose about as much as this (the map's planes, which
+    carry no such common error, then dominate the directions they fix)."""
+    match_ratio: float = 0.8
+    """Lowe's ratio test on the two nearest descriptors."""
+    window: int = 4
+    """Most recent keyframes whose images are kept, so their keypoints can be computed
+    when a later frame first needs them (none are computed while planes suffice)."""
+    every_keyframe: bool = False
+    """Detect the keypoints of every keyframe (as it leaves the window), so keypoints can
+    relocalise anywhere in the map later; false: only of keyframes a later frame needed
+    (no cost while planes suffice)."""
+    recent_keyframes: int = 3
+    """Recent keyframes a frame's keypoints are matched against."""
+    ransac_iterations: int = 200
+    """3-point samples of the point RANSAC."""
+    inlier_sigmas: float = 3.0
+    """A point match agrees with a pose within this many sigmas (both ends' depth noise
+    and the floor) ..."""
+    inlier_margin_m: float = 0.01
+    """... plus this margin [m]."""
+    min_inliers: int = 12
+    """Point matches a pose needs before points alone may constrain it."""
+    vote_max_distance: int = 50
+    """Relocalisation: descriptor distance [bits] within which a nearest neighbour votes
+    for its keyframe."""
+    vote_keyframes: int = 3
+    """Relocalisation: best-voted keyframes matched in full."""
+
+    def __post_init__(self) -> None:
+        for name in (
+            "max_keypoints",
+            "pyramid_levels",
+            "window",
+            "recent_keyframes",
+            "ransac_iterations",
+            "vote_keyframes",
+        ):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"tracking.points.{name} must be >= 1, got {getattr(self, name)}")
+        if self.min_inliers < 3:
+            raise ConfigError(f"tracking.points.min_inliers must be >= 3, got {self.min_inliers}")
+        for name in (
+            "max_depth_m",
+            "max_depth_step",
+            "sigma_px",
+            "sigma_floor_m",
+            "keyframe_sigma_m",
+            "inlier_sigmas",
+        ):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"tracking.points.{name} must be > 0, got {getattr(self, name)}")
+        if not 0 < self.match_ratio <= 1:
+            raise ConfigError(
+                f"tracking.points.match_ratio must be in (0, 1], got {self.match_ratio}"
+            )
+        if self.inlier_margin_m < 0 or self.fast_threshold < 1 or self.vote_max_distance < 1:
+            raise ConfigError(
+                "tracking.points: inlier_margin_m must be >= 0, fast_threshold and "
+                f"vote_max_distance >= 1 (got {self.inlier_margin_m}, {self.fast_threshold}, "
+                f"{self.vote_max_distance})"
+            )
 
 
 @dataclass(frozen=True)
@@ -35,21 +121,52 @@ class TrackingConfig:
     """See `size_gate_ratio` [m^2]."""
     max_outlier_rounds: int = 3
     """Rounds of dropping correspondences beyond the residual gates and solving again."""
+    fast_max_correction_m: float = 0.05
+    """The plane pose from the prediction alone (the fast path) is taken when it moved the
+    prediction by at most this [m] ...  Beyond it (frames far apart, a jump) the
+    prediction is no longer evidence and three planes always fit exactly: the pose needs
+    the keypoints' agreement, or goes to the robust estimate over every start."""
+    fast_max_correction_deg: float = 3.0
+    """... and turned it by at most this [deg]; farther, when `points.min_inliers`
+    keypoint matches with the last keyframe agree with it."""
     relocalise: bool = True
-    """Try corner and plane-triple hypotheses when the prediction gives no trusted pose."""
+    """Search the whole map (corner, plane-triple, edge and keypoint hypotheses) when
+    nothing near the prediction fits."""
     max_triple_planes: int = 10
     """Largest observed planes that form plane-triple hypotheses when relocalising."""
     max_triple_map_planes: int = 24
     """Largest map planes that form plane-triple hypotheses when relocalising."""
-    relocalise_max_rotation_deg: float = 90.0
-    """Hypotheses rotated more than this from the prediction are ignored [deg] (rooms are
-    often symmetric), unless tracking has been lost for `relocalise_anywhere_after` frames."""
-    relocalise_max_translation_m: float = 1.5
-    """Hypotheses farther than this from the prediction are ignored [m] (same exception)."""
+    edge_length_ratio: float = 1.2
+    """An observed edge pairs with map edges at least 1 / edge_length_ratio of its length
+    in edge hypotheses (map edges keep the longest length seen)."""
     relocalise_candidates: int = 8
-    """Hypotheses refined and compared in full when relocalising."""
-    relocalise_anywhere_after: int = 10
-    """After this many lost frames in a row, hypotheses anywhere are considered."""
+    """Best-supported relocalisation candidates refined in full."""
+    relocalise_min_planes: int = 4
+    """A relocalised pose needs this many inlier planes (one more than a plane triple
+    always fits) ..."""
+    relocalise_min_points: int = 30
+    """... or this many inlier point matches."""
+    relocalise_ambiguity: float = 0.8
+    """A relocalisation is refused when a candidate elsewhere scores at least this
+    fraction of the best (a symmetric room seen from its middle)."""
+    sigma_line_m: float = 0.03
+    """Noise of an edge end along its edge in the robust estimate [m]."""
+    huber_k: float = 2.0
+    """Huber threshold of the robust estimate, in sigmas of each term."""
+    max_sigma_deg: float = 2.0
+    """A pose is trusted when every rotation direction has at most this sigma [deg] ..."""
+    max_sigma_m: float = 0.03
+    """... and every translation direction at most this sigma [m]; the same thresholds
+    decide which directions a primitive constrains."""
+    points: PointConfig = field(default_factory=PointConfig)
+    """Keypoints with depth."""
+    segments: bool = True
+    """After a loss, track on in a new segment (from the lost frame) and join it to the
+    map when a later frame relocalises (`segments`); false: stay lost until then."""
+    segment_keyframe_m: float = 0.05
+    """A segment frame this far [m] from the segment's last keyframe becomes its keyframe ..."""
+    segment_keyframe_deg: float = 5.0
+    """... or one turned this much [deg]."""
     icp: bool = True
     """Use frame-to-frame ICP where planes leave directions free, and as a fallback."""
     icp_stride: int = 4
@@ -77,9 +194,16 @@ class TrackingConfig:
             "sigma_point_m",
             "max_residual_angle_deg",
             "max_residual_offset_m",
-            "relocalise_max_rotation_deg",
             "size_gate_ratio",
-            "relocalise_max_translation_m",
+            "edge_length_ratio",
+            "sigma_line_m",
+            "huber_k",
+            "fast_max_correction_m",
+            "segment_keyframe_m",
+            "segment_keyframe_deg",
+            "fast_max_correction_deg",
+            "max_sigma_deg",
+            "max_sigma_m",
             "icp_voxel_m",
             "icp_max_distance_m",
             "icp_max_rmse_m",
@@ -91,6 +215,17 @@ class TrackingConfig:
         for name in ("max_triple_planes", "max_triple_map_planes"):
             if getattr(self, name) < 3:
                 raise ConfigError(f"tracking.{name} must be >= 3, got {getattr(self, name)}")
+        for name in (
+            "relocalise_candidates",
+            "relocalise_min_planes",
+            "relocalise_min_points",
+        ):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"tracking.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 < self.relocalise_ambiguity <= 1:
+            raise ConfigError(
+                f"tracking.relocalise_ambiguity must be in (0, 1], got {self.relocalise_ambiguity}"
+            )
         if self.icp_stride < 1:
             raise ConfigError(f"tracking.icp_stride must be >= 1, got {self.icp_stride}")
         if not 0 <= self.icp_min_fitness <= 1:

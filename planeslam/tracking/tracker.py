@@ -1,29 +1,31 @@
-"""Tracking: the pose of a frame against the plane-object map (paper Section 4.4).
+"""Tracking: the pose of a frame against the plane-object map (paper Section 4.4), from
+planes, corners, edges and keypoints, with no motion prior required.
 
-Per frame, in order, the first path that gives a trustworthy pose wins; the result
-says which one was used:
+Per frame:
 
-1. `planes`: associate the frame's planes and corners with the map's under the predicted
-   pose (`association.associate_with_corners`), then the closed-form pose from plane and
-   corner correspondences (`registration.pose_from_planes_and_points`), associated again
-   under that pose and solved once more. Trusted when rotation and translation are both
-   observable and the residuals are within the gates.
-2. `relocalised`: the prediction was off (a jump, frames far apart, tracking lost): every
-   observed corner against every map corner of the same convexity (6 pairings of their
-   planes), and every triple of independent observed planes against the map triples with
-   the same pairwise angles, is a pose hypothesis; the one under which most planes find a
-   partner (then the one nearest the prediction) goes through path 1. Corners and plane
-   triples are rigid, so this needs no small-motion assumption.
-3. `planes+odometry`, `planes+icp`: the planes fixed rotation but left translation
-   directions free (a corridor, a box side seen for the first time): Open3D RGB-D
-   odometry, else point-to-plane ICP, against the previous frame and started from the
-   plane pose, supplies those directions only.
-4. `odometry`, then `icp`: planes do not constrain the pose (one wall, nothing planar):
-   RGB-D odometry, then ICP, from the prediction.
-5. `lost`: nothing worked; the pose is the prediction.
+1. `planes` (the fast path of close frames): associate the frame's planes and corners
+   with the map's under the predicted pose (`association.associate_with_corners`), solve
+   the closed-form pose (`registration.pose_from_planes_and_points`), associate again and
+   solve once more. Taken when the planes constrain all six degrees of freedom and every
+   residual is within the gates.
+2. One robust estimate over every primitive (`estimator.estimate_pose`): planes, corners
+   and edge ends associated under a start pose, and keypoints with depth matched against
+   the most recent keyframes, each weighted by its covariance. Start poses: the partial
+   plane pose of step 1, the pose of a point RANSAC (`keypoints.ransac_pose`, no prior)
+   and the prediction; each is refined, and the best-supported trusted one wins. The path
+   says what fixed the pose: `planes` (planes alone fixed all six directions),
+   `planes+points` (the planes fixed some, other primitives the rest) or `points`.
+3. `relocalised`: nothing near the prediction fits: whole-map relocalisation
+   (`relocalise.relocalisation_candidates`: corner, plane-triple and edge hypotheses and
+   the keyframes that share most descriptors, verified against all of the frame's
+   primitives), each candidate refined as in step 2.
+4. `odometry`, then `icp`: nothing above gives a pose: RGB-D odometry, then ICP against
+   the previous frame, from the prediction (not mapped).
+5. `lost`: nothing worked; the pose is the prediction and the frame is left out of the
+   trajectory.
 
-Only poses of paths 1-2 (and the first frame) are merged into the map (see
-`planeslam.slam.MAPPING_PATHS`).
+Every result says which degrees of freedom the planes constrained and what filled the
+rest (`TrackResult.constraints`).
 
 Frames: map planes and corners are in the world frame, observations in the camera
 frame; every pose is T_world_cam (4, 4).
@@ -31,14 +33,14 @@ frame; every pose is T_world_cam (4, 4).
 
 from __future__ import annotations
 
-import itertools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose
 from planeslam.core.types import TrackingPath
@@ -48,87 +50,44 @@ from planeslam.tracking.association import (
     plane_association_cost,
 )
 from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.estimator import (
+    ConstraintThresholds,
+    EstimatorSettings,
+    LineTerms,
+    PlaneTerms,
+    PointTerms,
+    PoseConstraints,
+    PoseEstimate,
+    Primitive,
+    constraints,
+    estimate_pose,
+    fully_constrained,
+)
+from planeslam.tracking.hypotheses import pose_difference
+from planeslam.tracking.keypoints import (
+    KeypointDetector,
+    KeypointMap,
+    Keypoints,
+    PointMatches,
+    inlier_threshold,
+    point_residuals,
+    ransac_pose,
+)
 from planeslam.tracking.registration import (
     RegistrationResult,
     RegistrationStatus,
     pose_from_planes_and_points,
     refine_icp,
 )
+from planeslam.tracking.relocalise import relocalisation_candidates
+from planeslam.tracking.views import FrameView, MapView
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
 
+__all__ = ["FrameView", "MapView", "PoseSolve", "TrackResult", "Tracker"]
+
 logger = logging.getLogger(__name__)
-
-_PERMUTATIONS_3 = np.array(list(itertools.permutations(range(3))))
-
-
-@dataclass(frozen=True)
-class MapView:
-    """The map as tracking sees it: planes and corners in the world frame."""
-
-    plane_ids: np.ndarray
-    """(M,) int map plane ids."""
-    normals: np.ndarray
-    """(M, 3) unit normals, world frame."""
-    d: np.ndarray
-    """(M,) offsets [m], world frame."""
-    corner_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    """(K,) int map corner ids."""
-    corner_planes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), dtype=np.int64))
-    """(K, 3) ROW indices into plane_ids / normals of each corner's three planes."""
-    corner_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    """(K, 3) corner points, world frame [m]."""
-    corner_convex_edges: np.ndarray | None = None
-    """(K,) how many of each corner's edges are convex (3 box, 0 room); None: unknown."""
-    plane_weights: np.ndarray | None = None
-    """(M,) plane areas [m^2]: rank planes for relocalisation and gate association."""
-
-    @property
-    def empty(self) -> bool:
-        return len(self.plane_ids) == 0
-
-
-@dataclass(frozen=True)
-class FrameView:
-    """One observation's planes and corners as arrays, camera frame."""
-
-    plane_ids: np.ndarray
-    """(N,) observed plane ids."""
-    normals: np.ndarray
-    """(N, 3) unit normals toward the camera."""
-    d: np.ndarray
-    """(N,) offsets [m]."""
-    weights: np.ndarray
-    """(N,) relative plane weights (inlier counts / their mean)."""
-    corner_planes: np.ndarray
-    """(K, 3) ROW indices into plane_ids of each corner's planes."""
-    corner_points: np.ndarray
-    """(K, 3) corner points [m]."""
-    corner_convex_edges: np.ndarray | None = None
-    """(K,) how many of each corner's edges are convex; None: unknown."""
-    areas: np.ndarray | None = None
-    """(N,) visible plane areas [m^2]; None: unknown."""
-
-    @classmethod
-    def of(cls, observation: FrameObservation) -> FrameView:
-        planes = observation.segmentation.planes
-        ids = np.array([p.id for p in planes], dtype=np.int64)
-        row = {int(i): k for k, i in enumerate(ids)}
-        corners = observation.structure.corners
-        counts = np.array([p.num_points for p in planes], dtype=np.float64)
-        return cls(
-            plane_ids=ids,
-            normals=np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3),
-            d=np.array([p.d for p in planes], dtype=np.float64),
-            weights=counts / counts.mean() if len(counts) else counts,
-            corner_planes=np.array(
-                [[row[i] for i in c.planes] for c in corners], dtype=np.int64
-            ).reshape(-1, 3),
-            corner_points=np.array([c.point for c in corners], dtype=np.float64).reshape(-1, 3),
-            corner_convex_edges=np.array([c.convex_edges for c in corners], dtype=np.int64),
-            areas=np.array([p.area_m2 for p in planes], dtype=np.float64),
-        )
 
 
 @dataclass(frozen=True)
@@ -147,6 +106,11 @@ class TrackResult:
     new_planes: int = 0
     """Observed planes with no map plane within the association gates under the final pose
     (structure the map does not have yet; an outlier of the pose solve does not count)."""
+    constraints: PoseConstraints | None = None
+    """Which degrees of freedom the planes fixed and what fixed the rest; None for the
+    first frame and lost frames."""
+    keypoints: Keypoints | None = field(default=None, repr=False)
+    """The frame's keypoints when tracking computed them (a keyframe keeps them)."""
 
     @property
     def lost(self) -> bool:
@@ -166,35 +130,36 @@ class PoseSolve:
         return self.registration.T
 
 
+@dataclass(frozen=True)
+class JointSolve:
+    """A robust estimate over every primitive and the correspondences it used."""
+
+    estimate: PoseEstimate
+    association: Association
+    """Plane and corner correspondences kept (within the gates at the solution)."""
+    constraints: PoseConstraints
+    point_inliers: int
+    score: float
+    """Support: inlier planes (1 each), corners (2), point matches (1/10)."""
+
+    @property
+    def T(self) -> np.ndarray:
+        return self.estimate.T_world_cam
+
+    @property
+    def path(self) -> TrackingPath:
+        c = self.constraints
+        if c.planes_full:
+            return TrackingPath.PLANES
+        if c.plane_rotation_dof == 0 and c.plane_translation_dof == 0:
+            return TrackingPath.POINTS
+        return TrackingPath.PLANES_POINTS
+
+
 def _trusted(reg: RegistrationResult, cfg: TrackingConfig) -> bool:
     angle_ok = np.all(reg.plane_angle_residual_rad <= np.radians(cfg.max_residual_angle_deg))
     offset_ok = np.all(np.abs(reg.plane_offset_residual_m) <= cfg.max_residual_offset_m)
     return bool(angle_ok and offset_ok)
-
-
-def _rotation_kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rotations R minimising sum |R src_i - dst_i|^2 for (..., 3, 3) row stacks."""
-    H = np.swapaxes(src, -1, -2) @ dst
-    U, _, Vt = np.linalg.svd(H)
-    D = np.ones(H.shape[:-2] + (3,))
-    D[..., 2] = np.sign(np.linalg.det(np.swapaxes(Vt, -1, -2) @ np.swapaxes(U, -1, -2)))
-    return np.swapaxes(Vt, -1, -2) @ (D[..., :, None] * np.swapaxes(U, -1, -2))
-
-
-def _independent_triples(
-    normals: np.ndarray, weights: np.ndarray | None, limit: int, ordered: bool = False
-) -> np.ndarray:
-    """(T, 3) row indices of plane triples whose normals are far from coplanar (|det| > 0.2),
-    among the `limit` heaviest planes (first rows when weights is None); every ordering of
-    each triple when `ordered`."""
-    rows = np.arange(len(normals)) if weights is None else np.argsort(-weights, kind="stable")
-    rows = rows[:limit]
-    if len(rows) < 3:
-        return np.zeros((0, 3), dtype=np.int64)
-    combos = itertools.permutations(rows, 3) if ordered else itertools.combinations(rows, 3)
-    triples = np.array(list(combos), dtype=np.int64)
-    det = np.abs(np.linalg.det(normals[triples]))
-    return triples[det > 0.2]
 
 
 def _fill_translation(reg: RegistrationResult, T_icp: np.ndarray) -> np.ndarray:
@@ -206,19 +171,101 @@ def _fill_translation(reg: RegistrationResult, T_icp: np.ndarray) -> np.ndarray:
     return T
 
 
-class Tracker:
-    """Frame-to-map tracking with plane, corner, ICP and RGB-D odometry paths."""
+def _plane_constraints(reg: RegistrationResult, terms: dict[str, int]) -> PoseConstraints:
+    """The constraints of a closed-form plane pose (from its observability)."""
+    return PoseConstraints(
+        plane_rotation_dof=3 - len(reg.unobservable_rotation_axes),
+        plane_translation_dof=3 - len(reg.unobservable_translation_dirs),
+        terms=terms,
+    )
 
-    def __init__(self, config: TrackingConfig, odometry=None) -> None:
-        """`odometry`: an `odometry.RgbdOdometry` for the last fallback, or None."""
+
+class _LazyKeypoints:
+    """A frame's keypoints, detected on first use."""
+
+    def __init__(self, detect: Callable[[], Keypoints] | None) -> None:
+        self._detect = detect
+        self.value: Keypoints | None = None
+
+    def get(self) -> Keypoints | None:
+        if self.value is None and self._detect is not None:
+            self.value = self._detect()
+            self._detect = None
+        return self.value
+
+
+_NO_POINTS = _LazyKeypoints(None)
+
+
+class Tracker:
+    """Frame-to-map tracking from planes, corners, edges and keypoints."""
+
+    def __init__(
+        self,
+        config: TrackingConfig,
+        odometry=None,
+        camera: CameraConfig | None = None,
+        sensor: DepthNoiseConfig | None = None,
+        seed: int = 0,
+        empty_map_starts: bool = True,
+    ) -> None:
+        """`odometry`: an `odometry.RgbdOdometry` for the last fallback, or None. `camera`
+        and `sensor` enable keypoints (`config.points`) and real edge ends. With
+        `empty_map_starts`, a frame nothing places while the map has no plane starts the
+        map where predicted (path `first`); otherwise it is lost."""
         self.config = config
+        self.empty_map_starts = empty_map_starts
         self.odometry = odometry
+        self.camera = camera
+        self.sensor = sensor or DepthNoiseConfig()
+        self.rng = np.random.default_rng(seed)
+        self.keypoint_map: KeypointMap | None = None
+        if config.points.enabled and camera is not None:
+            detector = KeypointDetector(camera, self.sensor, config.points)
+            self.keypoint_map = KeypointMap(detector)
+        self.settings = EstimatorSettings(
+            plane_sigma_angle_rad=np.radians(config.sigma_angle_deg),
+            plane_sigma_offset_m=config.sigma_offset_m,
+            line_sigma_m=config.sigma_line_m,
+            huber_k=config.huber_k,
+        )
+        self.thresholds = ConstraintThresholds(
+            max_sigma_rad=np.radians(config.max_sigma_deg), max_sigma_m=config.max_sigma_m
+        )
         self._previous_cloud: np.ndarray | None = None
         """(H, W, 3) organised cloud of the last tracked frame (ICP fallback)."""
         self._previous_rgbd: tuple[np.ndarray, np.ndarray] | None = None
         self._T_world_previous: np.ndarray | None = None
         self.lost_streak = 0
         """Frames lost in a row up to now."""
+        self.prediction_valid = True
+        """Whether the previous frame was tracked, so the prediction means something (false
+        after a loss, and for the first frame in a loaded map: see `expect_jump`)."""
+
+    # -------------------------------------------------------------------------- keyframes
+
+    def add_keyframe(
+        self,
+        index: int,
+        T_world_cam: np.ndarray,
+        rgb: np.ndarray | None,
+        cloud: np.ndarray | None,
+        keypoints: Keypoints | None = None,
+    ) -> None:
+        """Frame `index` became a keyframe at T_world_cam (4, 4): its keypoints (if tracking
+        computed them) or its images join the keypoint map."""
+        if self.keypoint_map is not None:
+            self.keypoint_map.add(index, T_world_cam, rgb, cloud, keypoints)
+
+    def move_keyframe(self, index: int, T_world_cam: np.ndarray) -> None:
+        """The backend corrected keyframe `index` to T_world_cam (4, 4)."""
+        if self.keypoint_map is not None:
+            self.keypoint_map.move(index, T_world_cam)
+
+    def expect_jump(self) -> None:
+        """The next frame's prediction is no evidence (a loaded map, a restart): it must be
+        placed by keypoints or whole-map relocalisation, and no dense fallback runs."""
+        self.prediction_valid = False
 
     # -------------------------------------------------------------------------- planes
 
@@ -286,7 +333,7 @@ class Tracker:
                 return result
             reg = self._solve(frame, view, assoc, T_pred)
             for _ in range(self.config.max_outlier_rounds):
-                kept = self._inliers(frame, view, assoc, reg)
+                kept = self._inliers(frame, assoc, reg)
                 if kept is None:
                     break
                 if not kept.planes:
@@ -296,7 +343,7 @@ class Tracker:
         return result
 
     def _inliers(
-        self, frame: FrameView, view: MapView, assoc: Association, reg: RegistrationResult
+        self, frame: FrameView, assoc: Association, reg: RegistrationResult
     ) -> Association | None:
         """`assoc` without the correspondences beyond the residual gates, or None when all
         are within them. Corners go with any of their planes."""
@@ -307,128 +354,253 @@ class Tracker:
         corner_ok = reg.point_residual_m <= cfg.max_corner_distance_m
         if ok.all() and corner_ok.all():
             return None
-        planes = [p for p, keep in zip(assoc.planes, ok, strict=True) if keep]
-        kept_obs = {i for i, _ in planes}
-        corners = [
-            c
-            for c, keep in zip(assoc.corners, corner_ok, strict=True)
-            if keep and all(int(i) in kept_obs for i in frame.corner_planes[c[0]])
-        ]
-        return Association(planes=planes, corners=corners)
+        return _keep(frame, assoc, ok, corner_ok)
 
-    def corner_hypotheses(self, frame: FrameView, view: MapView) -> np.ndarray:
-        """(H, 4, 4) T_world_cam hypotheses from every (observed corner, map corner, pairing of
-        their planes) of the same convexity whose normals agree within the angle gate after
-        rotation; translation from the two corner points."""
-        if not len(frame.corner_planes) or not len(view.corner_planes):
-            return np.zeros((0, 4, 4))
-        n_obs = frame.normals[frame.corner_planes]  # (Ko, 3, 3)
-        n_map = view.normals[view.corner_planes][:, _PERMUTATIONS_3]  # (Km, 6, 3, 3)
-        src = np.broadcast_to(n_obs[:, None, None], (len(n_obs),) + n_map.shape)
-        dst = np.broadcast_to(n_map[None], src.shape)
-        R = _rotation_kabsch(src, dst)  # (Ko, Km, 6, 3, 3)
-        rotated = np.einsum("...ij,...kj->...ki", R, src)
-        cos = np.clip(np.sum(rotated * dst, axis=-1), -1.0, 1.0)
-        ok = np.all(cos >= np.cos(np.radians(self.config.max_angle_deg)), axis=-1)
-        if frame.corner_convex_edges is not None and view.corner_convex_edges is not None:
-            same = frame.corner_convex_edges[:, None] == view.corner_convex_edges[None, :]
-            ok &= same[:, :, None]
-        p_obs = np.broadcast_to(frame.corner_points[:, None, None], R.shape[:-1])
-        p_map = np.broadcast_to(view.corner_points[None, :, None], R.shape[:-1])
-        t = p_map - np.einsum("...ij,...j->...i", R, p_obs)
-        T = np.tile(np.eye(4), R.shape[:-2] + (1, 1))
-        T[..., :3, :3], T[..., :3, 3] = R, t
-        return T[ok]
+    # -------------------------------------------------------------------------- joint
 
-    def triple_hypotheses(self, frame: FrameView, view: MapView) -> np.ndarray:
-        """(H, 4, 4) T_world_cam hypotheses from triples of planes with independent normals,
-        observed against ordered map triples with the same pairwise angles (within the
-        angle gate): rotation from the normals, translation from the three offsets. The
-        `max_triple_planes` largest observed and `max_triple_map_planes` largest map planes
-        take part."""
+    def _terms(
+        self,
+        frame: FrameView,
+        view: MapView,
+        assoc: Association,
+        T: np.ndarray,
+        keypoints: Keypoints | None,
+        matches: PointMatches,
+    ) -> tuple[PlaneTerms, list[PointTerms], LineTerms, np.ndarray]:
+        """The estimator's terms under T: associated planes and corners, the point matches
+        within twice their inlier threshold, and the real ends of edges whose two planes
+        are associated with the two planes of a map edge (the nearer map end, within
+        `max_corner_distance_m`). Also returns the point matches' mask."""
         cfg = self.config
-        obs = _independent_triples(frame.normals, frame.weights, cfg.max_triple_planes)
-        mp = _independent_triples(
-            view.normals, view.plane_weights, cfg.max_triple_map_planes, ordered=True
+        obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
+        cov = (
+            frame.covariances[obs] if frame.covariances is not None else np.zeros((len(obs), 3, 3))
         )
-        if not len(obs) or not len(mp):
-            return np.zeros((0, 4, 4))
-        pair = np.array([[0, 1], [1, 2], [0, 2]])
-        cos_obs = np.sum(frame.normals[obs[:, pair[:, 0]]] * frame.normals[obs[:, pair[:, 1]]], -1)
-        cos_map = np.sum(view.normals[mp[:, pair[:, 0]]] * view.normals[mp[:, pair[:, 1]]], -1)
-        angle_obs = np.arccos(np.clip(cos_obs, -1, 1))  # (To, 3)
-        angle_map = np.arccos(np.clip(cos_map, -1, 1))  # (Tm, 3)
-        gate = np.radians(cfg.max_angle_deg)
-        io, im = np.nonzero(np.all(np.abs(angle_obs[:, None] - angle_map[None]) <= gate, -1))
-        if not len(io):
-            return np.zeros((0, 4, 4))
-        n_src, n_dst = frame.normals[obs[io]], view.normals[mp[im]]  # (H, 3, 3)
-        R = _rotation_kabsch(n_src, n_dst)
-        A = np.einsum("hij,hkj->hki", R, n_src)  # rows: R n_obs_i
-        b = frame.d[obs[io]] - view.d[mp[im]]  # (R n_obs_i) . t = d_obs_i - d_map_i
-        t = np.linalg.solve(A, b[..., None])[..., 0]
-        T = np.tile(np.eye(4), (len(io), 1, 1))
-        T[:, :3, :3], T[:, :3, 3] = R, t
-        return T
-
-    def hypotheses(self, frame: FrameView, view: MapView) -> np.ndarray:
-        """All pose hypotheses: corners first, then plane triples ((H, 4, 4) T_world_cam)."""
-        return np.concatenate(
-            [self.corner_hypotheses(frame, view), self.triple_hypotheses(frame, view)]
+        planes = PlaneTerms(frame.normals[obs], frame.d[obs], view.normals[mp], view.d[mp], cov)
+        co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+        corner_cov = np.broadcast_to(cfg.sigma_point_m**2 / 2 * np.eye(3), (len(co), 3, 3))
+        corners = PointTerms(
+            frame.corner_points[co],
+            view.corner_points[cm],
+            corner_cov,
+            corner_cov,
+            Primitive.CORNERS,
         )
-
-    def support(self, frame: FrameView, view: MapView, T: np.ndarray) -> np.ndarray:
-        """(H,) number of observed planes that have a map plane within the angle and offset
-        gates under each hypothesis T (H, 4, 4)."""
-        R, t = T[:, :3, :3], T[:, :3, 3]
-        n_world = np.einsum("hij,nj->hni", R, frame.normals)  # (H, N, 3)
-        d_world = frame.d[None, :] - np.einsum("hni,hi->hn", n_world, t)
-        cos = np.einsum("hni,mi->hnm", n_world, view.normals)
-        offset = np.abs(d_world[:, :, None] - view.d[None, None, :])
-        cfg = self.config
-        close = (cos >= np.cos(np.radians(cfg.max_angle_deg))) & (offset <= cfg.max_offset_m)
-        return np.count_nonzero(close.any(axis=2), axis=1)
-
-    def relocalise(self, frame: FrameView, view: MapView, T_pred: np.ndarray) -> PoseSolve | None:
-        """Best hypothesis, refined by `register`; None when none is trusted.
-
-        Hypotheses are ranked by how many observed planes find a partner under them (then
-        by distance to the prediction T_pred); the `relocalise_candidates` best are each
-        refined, and the trusted one with the most associated planes, then corners, then
-        the smallest residuals wins."""
-        cfg = self.config
-        T = self.hypotheses(frame, view)
-        distance = np.linalg.norm(T[:, :3, 3] - T_pred[:3, 3], axis=1)
-        if self.lost_streak < cfg.relocalise_anywhere_after:
-            R_delta = np.einsum("ji,hjk->hik", T_pred[:3, :3], T[:, :3, :3])
-            cos = (np.trace(R_delta, axis1=1, axis2=2) - 1.0) / 2.0
-            near = (cos >= np.cos(np.radians(cfg.relocalise_max_rotation_deg))) & (
-                distance <= cfg.relocalise_max_translation_m
+        terms = [corners]
+        use = np.zeros(len(matches), dtype=bool)
+        if keypoints is not None and len(matches):
+            p_cam = keypoints.points_cam[matches.observed]
+            gate = 2.0 * inlier_threshold(p_cam, cfg.points, self.sensor)
+            use = point_residuals(T, p_cam, matches.points_world) < gate
+            # A keyframe's pose error is common to all its points: spread its variance over
+            # them, so one keyframe's points together weigh at most like its pose.
+            _, group, count = np.unique(
+                matches.keyframes[use], return_inverse=True, return_counts=True
             )
-            T, distance = T[near], distance[near]
-        if not len(T):
-            return None
-        count = self.support(frame, view, T)
-        order = np.lexsort((distance, -count))
-        best, best_key = None, None
-        for k in order[: cfg.relocalise_candidates]:
-            if count[k] < 3:
-                break
-            candidate = self.register(frame, view, T[k])
-            if candidate is None or not _trusted(candidate.registration, cfg):
+            shared = (count[group] * cfg.points.keyframe_sigma_m**2)[:, None, None] * np.eye(3)
+            terms.append(
+                PointTerms(
+                    p_cam[use],
+                    matches.points_world[use],
+                    keypoints.covariances[matches.observed[use]],
+                    matches.covariances_world[use] + shared,
+                )
+            )
+        return planes, terms, self._line_terms(frame, view, assoc, T), use
+
+    def _line_terms(
+        self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
+    ) -> LineTerms:
+        to_map = dict(assoc.planes)
+        edge_row = {
+            frozenset((int(a), int(b))): k for k, (a, b) in enumerate(view.edge_planes.tolist())
+        }
+        p, u, e = [], [], []
+        for k, (a, b) in enumerate(frame.edge_planes.tolist()):
+            if a not in to_map or b not in to_map or not frame.edge_real_ends[k].any():
                 continue
-            reg = candidate.registration
-            residual = (
-                float(np.mean(reg.plane_angle_residual_rad)) / np.radians(cfg.sigma_angle_deg)
-                + float(np.mean(np.abs(reg.plane_offset_residual_m))) / cfg.sigma_offset_m
+            j = edge_row.get(frozenset((to_map[a], to_map[b])))
+            if j is None:
+                continue
+            seg = view.edge_segments[j]
+            direction = seg[1] - seg[0]
+            length = float(np.linalg.norm(direction))
+            if length < 1e-6:
+                continue
+            direction /= length
+            for end in np.flatnonzero(frame.edge_real_ends[k]):
+                p_cam = frame.edge_segments[k, end]
+                s = float(direction @ (T[:3, :3] @ p_cam + T[:3, 3] - seg[0]))
+                target = seg[0] if abs(s) <= abs(s - length) else seg[1]
+                if min(abs(s), abs(s - length)) <= self.config.max_corner_distance_m:
+                    p.append(p_cam)
+                    u.append(direction)
+                    e.append(target)
+        return LineTerms(
+            np.array(p).reshape(-1, 3), np.array(u).reshape(-1, 3), np.array(e).reshape(-1, 3)
+        )
+
+    def joint(
+        self,
+        frame: FrameView,
+        view: MapView,
+        T_start: np.ndarray,
+        keypoints: Keypoints | None,
+        matches: PointMatches,
+    ) -> JointSolve | None:
+        """Robust estimate over every primitive from T_start (4, 4): associate under the
+        current pose, estimate, associate again, drop planes and corners beyond the gates
+        and estimate once more. None when the result is not trusted: some direction is
+        left unconstrained, or it rests on points alone with fewer than
+        `points.min_inliers` of them."""
+        cfg = self.config
+        T = T_start
+        assoc = Association([], [])
+        estimate = None
+        use = np.zeros(len(matches), dtype=bool)
+        for _ in range(2):
+            assoc = self._associate(frame, view, T) if len(view.plane_ids) else assoc
+            planes, points, lines, use = self._terms(frame, view, assoc, T, keypoints, matches)
+            if not len(planes) and not sum(len(p) for p in points):
+                return None
+            estimate = estimate_pose(T, planes, points, lines, self.settings)
+            T = estimate.T_world_cam
+        assert estimate is not None
+        kept = self._joint_inliers(frame, view, assoc, T)
+        if kept is not None:
+            assoc = kept
+            planes, points, lines, use = self._terms(frame, view, assoc, T, keypoints, matches)
+            if not len(planes) and not sum(len(p) for p in points):
+                return None
+            estimate = estimate_pose(T, planes, points, lines, self.settings)
+        if not fully_constrained(estimate, self.thresholds):
+            return None
+        point_inliers = (
+            int(np.count_nonzero(estimate.point_inliers[1]))
+            if len(estimate.point_inliers) > 1
+            else 0
+        )
+        terms = {
+            "planes": int(np.count_nonzero(estimate.plane_inliers)),
+            "corners": len(assoc.corners),
+            "points": point_inliers,
+            "lines": int(np.count_nonzero(estimate.line_inliers)),
+        }
+        found = constraints(estimate, self.thresholds, terms)
+        if not found.planes_full and Primitive.POINTS in found.filled_by:
+            if point_inliers < cfg.points.min_inliers:
+                return None
+        score = terms["planes"] + 2.0 * terms["corners"] + point_inliers / 10.0
+        return JointSolve(estimate, assoc, found, point_inliers, score)
+
+    def _joint_inliers(
+        self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
+    ) -> Association | None:
+        """`assoc` without the planes and corners beyond the residual gates under T."""
+        if not assoc.planes:
+            return None
+        cfg = self.config
+        obs, mp = np.array(assoc.planes, dtype=np.int64).T
+        n_world = frame.normals[obs] @ T[:3, :3].T
+        d_world = frame.d[obs] - n_world @ T[:3, 3]
+        cos = np.clip(np.sum(n_world * view.normals[mp], axis=1), -1.0, 1.0)
+        ok = (np.arccos(cos) <= np.radians(cfg.max_residual_angle_deg)) & (
+            np.abs(d_world - view.d[mp]) <= cfg.max_residual_offset_m
+        )
+        co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+        moved = frame.corner_points[co] @ T[:3, :3].T + T[:3, 3]
+        corner_ok = (
+            np.linalg.norm(moved - view.corner_points[cm], axis=1) <= cfg.max_corner_distance_m
+        )
+        if ok.all() and corner_ok.all():
+            return None
+        return _keep(frame, assoc, ok, corner_ok)
+
+    def _best_joint(
+        self,
+        frame: FrameView,
+        view: MapView,
+        starts: list[np.ndarray],
+        keypoints: Keypoints | None,
+        matches: PointMatches,
+        T_pred: np.ndarray,
+    ) -> JointSolve | None:
+        """The best-supported `joint` solution over the start poses that is corroborated:
+        by at least `points.min_inliers` point matches, or (while tracking, not after a
+        loss) by being within the fast path's correction of the prediction or by at least
+        `relocalise_min_planes` inlier planes. Planes alone far from a prediction prove
+        little: three of them always fit."""
+        cfg = self.config
+        best: JointSolve | None = None
+        solved: list[np.ndarray] = []
+        for T0 in starts:
+            differences = (pose_difference(T, T0) for T in solved)
+            if any(meters < 0.01 and degrees < 0.5 for meters, degrees in differences):
+                continue  # where an earlier start already went
+            candidate = self.joint(frame, view, T0, keypoints, matches)
+            if candidate is not None:
+                solved.append(candidate.T)
+            if candidate is None or (best is not None and candidate.score <= best.score):
+                continue
+            corroborated = candidate.point_inliers >= cfg.points.min_inliers or (
+                self.prediction_valid
+                and (
+                    self._near(candidate.T, T_pred)
+                    or candidate.constraints.terms["planes"] >= cfg.relocalise_min_planes
+                )
             )
-            key = (
-                -len(candidate.association.planes),
-                -len(candidate.association.corners),
-                residual,
+            if corroborated:
+                best = candidate
+        return best
+
+    # -------------------------------------------------------------------------- relocalise
+
+    def relocalise(
+        self,
+        frame: FrameView,
+        view: MapView,
+        T_pred: np.ndarray,
+        keypoints: Keypoints | None = None,
+    ) -> JointSolve | None:
+        """The best candidate of a whole-map search (`relocalisation_candidates`), refined
+        by `joint`. Taken only with more support than a minimal set gives (at least
+        `relocalise_min_planes` inlier planes, or `relocalise_min_points` inlier point
+        matches) and without a rival: a refined candidate elsewhere (beyond 10 cm or 5 deg)
+        with at least `relocalise_ambiguity` of its score means the map is ambiguous
+        there (a symmetric room), and the frame stays lost."""
+        cfg = self.config
+        candidates = relocalisation_candidates(
+            frame, view, keypoints, self.keypoint_map, cfg, self.sensor, self.rng, T_pred
+        )
+        solved = [
+            s
+            for s in (
+                self.joint(frame, view, T0, keypoints, candidates.matches)
+                for T0 in candidates.poses
             )
-            if best_key is None or key < best_key:
-                best, best_key = candidate, key
+            if s is not None
+        ]
+        if not solved:
+            return None
+        solved.sort(key=lambda s: -s.score)
+        best = solved[0]
+        enough = (
+            best.constraints.terms["planes"] >= cfg.relocalise_min_planes
+            or best.point_inliers >= cfg.relocalise_min_points
+        )
+        if not enough:
+            logger.debug(
+                "relocalisation: best candidate has too little support (%s)", best.constraints.terms
+            )
+            return None
+        for rival in solved[1:]:
+            if rival.score >= cfg.relocalise_ambiguity * best.score and not _same_pose(
+                rival.T, best.T
+            ):
+                logger.debug(
+                    "relocalisation ambiguous: scores %.1f and %.1f", best.score, rival.score
+                )
+                return None
         return best
 
     # -------------------------------------------------------------------------- points
@@ -468,6 +640,28 @@ class Tracker:
             return None
         return self._T_world_previous @ icp.T
 
+    def _agrees(self, cloud: np.ndarray | None, T_world_cam: np.ndarray) -> bool:
+        """Whether this frame's (H, W, 3) cloud, moved by T_world_cam (4, 4) into the
+        previous frame, lands on the previous frame's depth: at least `icp_min_fitness` of
+        the points that project into its image within `icp_max_distance_m` of its depth
+        there. True when it cannot be checked (no camera, no clouds)."""
+        if cloud is None or self._previous_cloud is None or self.camera is None:
+            return True
+        assert self._T_world_previous is not None, "set with the previous cloud"
+        cam, cfg = self.camera, self.config
+        T = invert_pose(self._T_world_previous) @ T_world_cam
+        p = self._points(cloud) @ T[:3, :3].T + T[:3, 3]
+        p = p[p[:, 2] > 0.1]
+        u = np.rint(cam.fx * p[:, 0] / p[:, 2] + cam.cx).astype(np.int64)
+        v = np.rint(cam.fy * p[:, 1] / p[:, 2] + cam.cy).astype(np.int64)
+        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        z_prev = self._previous_cloud[v[inside], u[inside], 2]
+        seen = z_prev > 0
+        if np.count_nonzero(seen) < 100:
+            return False
+        close = np.abs(z_prev[seen] - p[inside][seen, 2]) <= cfg.icp_max_distance_m
+        return bool(np.mean(close) >= cfg.icp_min_fitness)
+
     def _rgbd(self, rgbd, T_world_cam_init: np.ndarray) -> np.ndarray | None:
         """T_world_cam by RGB-D odometry against the previous frame, or None. `rgbd` and the
         previous frame are (rgb, depth_m) pairs, turned into Open3D images only here."""
@@ -492,105 +686,225 @@ class Tracker:
         depth_m: np.ndarray | None = None,
     ) -> TrackResult:
         """Pose of `observation` against the map `view`, starting from the prediction
-        T_pred (4, 4) T_world_cam; colour and depth enable the RGB-D odometry fallback."""
+        T_pred (4, 4) T_world_cam; colour enables keypoints, colour and depth the RGB-D
+        odometry fallback."""
         cfg = self.config
-        frame = FrameView.of(observation)
+        frame = FrameView.of(observation, self.camera)
         cloud = observation.cloud if cfg.icp else None
         rgbd = None
         if cfg.rgbd_odometry and self.odometry is not None and rgb is not None:
             rgbd = (rgb, depth_m) if depth_m is not None else None
-        result = self._track(frame, view, T_pred, cloud, rgbd)
+        points = _NO_POINTS
+        if self.keypoint_map is not None and rgb is not None and observation.cloud is not None:
+            detector, image, xyz = self.keypoint_map.detector, rgb, observation.cloud
+            points = _LazyKeypoints(lambda: detector.detect(image, xyz))
+        result = self._track(frame, view, T_pred, cloud, rgbd, points)
         self.lost_streak = self.lost_streak + 1 if result.lost else 0
+        self.prediction_valid = not result.lost
         if not result.lost:
             self._previous_cloud, self._previous_rgbd = cloud, rgbd
             self._T_world_previous = result.T_world_cam
         return result
 
-    def _track(self, frame, view, T_pred, cloud, rgbd) -> TrackResult:
-        """The paths of the module docstring, in order, on prepared inputs."""
+    def _track(
+        self,
+        frame: FrameView,
+        view: MapView,
+        T_pred: np.ndarray,
+        cloud: np.ndarray | None,
+        rgbd,
+        points: _LazyKeypoints = _NO_POINTS,
+    ) -> TrackResult:
+        """The steps of the module docstring, in order, on prepared inputs."""
         cfg = self.config
-        if view.empty:
+        if view.empty and self.keypoint_map is None and self.empty_map_starts:
             return TrackResult(T_pred, TrackingPath.FIRST, "empty map: the frame starts it")
-        reasons = []
-        solve = self.register(frame, view, T_pred)
-        path = TrackingPath.PLANES
-        if (
-            solve is None
-            or not _trusted(solve.registration, cfg)
-            or solve.registration.status
-            in (RegistrationStatus.TOO_FEW, RegistrationStatus.DEGENERATE_ROTATION)
-        ):
-            reasons.append(
-                "no plane matched the map under the prediction"
-                if solve is None
-                else f"plane pose {solve.registration.status.value}"
-                + ("" if _trusted(solve.registration, cfg) else " with residuals beyond the gates")
-            )
-            relocalised = self.relocalise(frame, view, T_pred) if cfg.relocalise else None
-            if relocalised is not None:
-                solve, path = relocalised, TrackingPath.RELOCALISED
-            else:
-                if cfg.relocalise:
-                    reasons.append("no corner or plane-triple hypothesis fits three planes")
-                solve = None if solve is None or not _trusted(solve.registration, cfg) else solve
-        if solve is not None and solve.registration.status is RegistrationStatus.OK:
-            return self._result(frame, view, solve, path, "; ".join(reasons))
-        # Point-based fallbacks, best first: RGB-D odometry (photometric + geometric, very
-        # accurate from a good start), then ICP.
-        fallbacks: list[tuple[TrackingPath, TrackingPath, Callable[[np.ndarray], Any]]] = [
-            (TrackingPath.ODOMETRY, TrackingPath.PLANES_ODOMETRY, lambda T0: self._rgbd(rgbd, T0))
-        ]
-        if cloud is not None:
-            fallbacks.append(
-                (TrackingPath.ICP, TrackingPath.PLANES_ICP, lambda T0: self._icp(cloud, T0))
-            )
+        reasons: list[str] = []
+        solve = self.register(frame, view, T_pred) if not view.empty else None
         if (
             solve is not None
-            and solve.registration.status is RegistrationStatus.DEGENERATE_TRANSLATION
+            and solve.registration.status is RegistrationStatus.OK
+            and _trusted(solve.registration, cfg)
+            and self.prediction_valid  # after a loss the prediction is no evidence
+            and (self._near(solve.T, T_pred) or self._points_agree(solve.T, points))
         ):
-            reasons.append("translation not observable from planes")
-            for _, with_planes, method in fallbacks:
-                T = method(solve.T)
-                if T is not None:
-                    T = _fill_translation(solve.registration, T)
-                    return self._result(frame, view, solve, with_planes, "; ".join(reasons), T)
-            reasons.append("no fallback filled it")
-        T_init = solve.T if solve is not None else T_pred
-        for alone, _, method in fallbacks:
-            T = method(T_init)
-            if T is not None:
-                return self._result(frame, view, solve, alone, "; ".join(reasons), T)
+            terms = {
+                "planes": len(solve.association.planes),
+                "corners": len(solve.association.corners),
+            }
+            return self._result(
+                frame,
+                view,
+                solve.T,
+                solve.association,
+                TrackingPath.PLANES,
+                "",
+                _plane_constraints(solve.registration, terms),
+                points.value,
+            )
+        reasons.append(
+            "no plane matched the map under the prediction"
+            if solve is None
+            else f"plane pose {solve.registration.status.value}"
+            + ("" if _trusted(solve.registration, cfg) else " with residuals beyond the gates")
+        )
+        # One estimate over every primitive, from every start that needs no plane prior.
+        keypoints = points.get()
+        matches = PointMatches.empty()
+        starts = []
+        if solve is not None and _trusted(solve.registration, cfg):
+            starts.append(solve.T)
+        if keypoints is not None and self.keypoint_map is not None and len(keypoints):
+            recent = self.keypoint_map.recent(cfg.points.recent_keyframes)
+            matches = self.keypoint_map.matches(keypoints, recent)
+            found = self._point_pose(keypoints, matches)
+            if found is not None:
+                starts.append(found)
+            else:
+                reasons.append(f"{len(matches)} point matches agree on no pose")
+        starts.append(T_pred)
+        best = self._best_joint(frame, view, starts, keypoints, matches, T_pred)
+        path: TrackingPath | None = None
+        if best is not None:
+            path = best.path
+        elif cfg.relocalise and not view.empty:
+            best = self.relocalise(frame, view, T_pred, keypoints)
+            path = TrackingPath.RELOCALISED
+            if best is None:
+                reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
+        if best is not None and path is not None:
+            return self._result(
+                frame,
+                view,
+                best.T,
+                best.association,
+                path,
+                "; ".join(reasons),
+                best.constraints,
+                keypoints,
+            )
+        jumped = len(matches) >= 2 * cfg.points.min_inliers  # matched, yet no pose: a jump
+        if jumped:
+            reasons.append("the frame's keypoints contradict the recent keyframes (a jump?)")
+        elif self.prediction_valid:
+            dense = self._dense(frame, view, T_pred, solve, cloud, rgbd, reasons, keypoints)
+            if dense is not None:
+                return dense
         reasons.append("no fallback registered the frame")
-        return TrackResult(T_pred, TrackingPath.LOST, "; ".join(reasons))
+        if view.empty and self.empty_map_starts:
+            return TrackResult(
+                T_pred, TrackingPath.FIRST, "empty map: the frame starts it", keypoints=keypoints
+            )
+        return TrackResult(T_pred, TrackingPath.LOST, "; ".join(reasons), keypoints=keypoints)
+
+    def _dense(
+        self,
+        frame: FrameView,
+        view: MapView,
+        T_pred: np.ndarray,
+        solve: PoseSolve | None,
+        cloud: np.ndarray | None,
+        rgbd,
+        reasons: list[str],
+        keypoints: Keypoints | None,
+    ) -> TrackResult | None:
+        """Last resort, right after a tracked frame only (across a loss the prediction is
+        stale): RGB-D odometry, then ICP, against the previous frame from the plane pose or
+        the prediction, taken when the result overlaps the previous frame's depth. A plane
+        pose that fixed rotation keeps it and its translation directions."""
+        cfg = self.config
+        methods: list[tuple[TrackingPath, Primitive, Callable[[np.ndarray], np.ndarray | None]]]
+        methods = [(TrackingPath.ODOMETRY, Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
+        if cloud is not None:
+            methods.append((TrackingPath.ICP, Primitive.ICP, lambda T0: self._icp(cloud, T0)))
+        planes = solve if solve is not None and _trusted(solve.registration, cfg) else None
+        for path, kind, method in methods:
+            T = method(T_pred if planes is None else planes.T)
+            if T is None:
+                continue
+            if not self._agrees(cloud, T):
+                reasons.append(f"{path.value} result does not overlap the previous frame")
+                continue
+            dof = (0, 0)
+            reg = None if planes is None else planes.registration
+            if reg is not None and reg.status is RegistrationStatus.DEGENERATE_TRANSLATION:
+                T = _fill_translation(reg, T)
+                path = (
+                    TrackingPath.PLANES_ODOMETRY
+                    if path is TrackingPath.ODOMETRY
+                    else TrackingPath.PLANES_ICP
+                )
+                dof = (3, 3 - len(reg.unobservable_translation_dirs))
+            assoc = self._associate(frame, view, T) if not view.empty else Association([], [])
+            found = PoseConstraints(*dof, filled_by=(kind,), terms={"planes": len(assoc.planes)})
+            return self._result(frame, view, T, assoc, path, "; ".join(reasons), found, keypoints)
+        return None
+
+    def _points_agree(self, T: np.ndarray, points: _LazyKeypoints) -> bool:
+        """Whether at least `points.min_inliers` matches of the frame's keypoints with the
+        last keyframe's agree with T (4, 4): the cheap check of a plane pose that moved the
+        prediction more than the fast path allows (online poses jitter by several cm even
+        at 30 Hz; a wrong plane fit at a wide baseline does not agree with the points)."""
+        keypoints = points.get()
+        if keypoints is None or self.keypoint_map is None or not len(keypoints):
+            return False
+        matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
+        if len(matches) < self.config.points.min_inliers:
+            return False
+        p_cam = keypoints.points_cam[matches.observed]
+        threshold = inlier_threshold(p_cam, self.config.points, self.sensor)
+        agree = point_residuals(T, p_cam, matches.points_world) < threshold
+        return int(np.count_nonzero(agree)) >= self.config.points.min_inliers
+
+    def _near(self, T: np.ndarray, T_pred: np.ndarray) -> bool:
+        """Whether T (4, 4) is within the fast path's correction of the prediction."""
+        meters, degrees = pose_difference(T_pred, T)
+        cfg = self.config
+        return meters <= cfg.fast_max_correction_m and degrees <= cfg.fast_max_correction_deg
+
+    def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
+        """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""
+        cfg = self.config.points
+        if len(matches) < cfg.min_inliers:
+            return None
+        p_cam = keypoints.points_cam[matches.observed]
+        found = ransac_pose(
+            p_cam,
+            matches.points_world,
+            inlier_threshold(p_cam, cfg, self.sensor),
+            cfg.ransac_iterations,
+            self.rng,
+            cfg.min_inliers,
+        )
+        return None if found is None else found.T_world_cam
 
     def _result(
         self,
         frame: FrameView,
         view: MapView,
-        solve: PoseSolve | None,
+        T_final: np.ndarray,
+        assoc: Association,
         path: TrackingPath,
         reason: str,
-        T: np.ndarray | None = None,
+        found: PoseConstraints | None,
+        keypoints: Keypoints | None,
     ) -> TrackResult:
-        """TrackResult with the correspondences of the final pose: those the plane pose was
-        solved from (outliers dropped), or, when a fallback moved the pose to T, those
-        under T."""
-        if T is None:
-            assert solve is not None, "a pose without a fallback comes from the planes"
-            T_final, assoc = solve.T, solve.association
-        else:
-            T_final, assoc = T, self._associate(frame, view, T)
+        """TrackResult with the correspondences of the final pose and the count of planes
+        the map does not have yet."""
         cfg = self.config
-        _, allowed = plane_association_cost(
-            view.normals,
-            view.d,
-            frame.normals,
-            frame.d,
-            T_final,
-            np.radians(cfg.max_angle_deg),
-            cfg.max_offset_m,
-            gate=self._size_gate(frame, view),
-        )
+        new_planes = len(frame.plane_ids)
+        if not view.empty:
+            _, allowed = plane_association_cost(
+                view.normals,
+                view.d,
+                frame.normals,
+                frame.d,
+                T_final,
+                np.radians(cfg.max_angle_deg),
+                cfg.max_offset_m,
+                gate=self._size_gate(frame, view),
+            )
+            new_planes = int(np.count_nonzero(~allowed.any(axis=1)))
         return TrackResult(
             T_world_cam=T_final,
             path=path,
@@ -599,5 +913,27 @@ class Tracker:
                 (int(frame.plane_ids[i]), int(view.plane_ids[j])) for i, j in assoc.planes
             ],
             corner_pairs=[(int(i), int(view.corner_ids[j])) for i, j in assoc.corners],
-            new_planes=int(np.count_nonzero(~allowed.any(axis=1))),
+            new_planes=new_planes,
+            constraints=found,
+            keypoints=keypoints,
         )
+
+
+def _same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """Whether two (4, 4) poses are within 10 cm and 5 deg of each other."""
+    meters, degrees = pose_difference(T_a, T_b)
+    return meters <= 0.10 and degrees <= 5.0
+
+
+def _keep(
+    frame: FrameView, assoc: Association, ok: np.ndarray, corner_ok: np.ndarray
+) -> Association:
+    """`assoc` with the planes `ok` (and the corners `corner_ok` whose planes all stay)."""
+    planes = [p for p, keep in zip(assoc.planes, ok, strict=True) if keep]
+    kept_obs = {i for i, _ in planes}
+    corners = [
+        c
+        for c, keep in zip(assoc.corners, corner_ok, strict=True)
+        if keep and all(int(i) in kept_obs for i in frame.corner_planes[c[0]])
+    ]
+    return Association(planes=planes, corners=corners)

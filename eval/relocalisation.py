@@ -1,0 +1,167 @@
+"""Relocalisation benchmark: frames placed in a finished map one at a time, with no prior.
+
+The map is a SLAM's after a run (planes, corners, edges, objects, and the keypoints of its
+keyframes when `tracking.points.every_keyframe` was on) or a saved map.json (primitives
+only). Every chosen frame goes through the front end and `Tracker.relocalise` on its own:
+no prediction (the identity only breaks ties), nothing of earlier attempts kept, the map
+not changed. A frame counts as relocalised when the pose is within the tolerances of its
+ground truth (map and truth share the world frame: the run started at the true pose).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from planeslam.config import resolve_config
+from planeslam.core.config import ConfigLayer
+from planeslam.core.errors import EvaluationError
+from planeslam.core.geometry import invert_pose
+from planeslam.io.sequence import RgbdDataset, open_dataset
+from planeslam.mapping.world_map import Map
+from planeslam.slam import SLAM, frame_indices, run_frames
+from planeslam.tracking.views import FrameView
+
+
+@dataclass(frozen=True)
+class RelocalisationAttempt:
+    """One frame placed in the map on its own."""
+
+    index: int
+    """Frame index in the dataset."""
+    found: bool
+    """Whether relocalisation returned a pose."""
+    translation_error_m: float | None
+    """Against ground truth; None when no pose was returned."""
+    rotation_error_deg: float | None
+    milliseconds: float
+    """Wall-clock time of the attempt (front end excluded)."""
+
+
+@dataclass(frozen=True)
+class RelocalisationReport:
+    """All attempts and their summary."""
+
+    attempts: list[RelocalisationAttempt] = field(repr=False)
+    tolerance_m: float = 0.05
+    tolerance_deg: float = 3.0
+
+    @property
+    def correct(self) -> int:
+        """Attempts within both tolerances of the truth."""
+        return sum(
+            a.found
+            and a.translation_error_m is not None
+            and a.rotation_error_deg is not None
+            and a.translation_error_m <= self.tolerance_m
+            and a.rotation_error_deg <= self.tolerance_deg
+            for a in self.attempts
+        )
+
+    @property
+    def wrong(self) -> int:
+        """Attempts that returned a pose outside the tolerances."""
+        return sum(a.found for a in self.attempts) - self.correct
+
+    def to_dict(self) -> dict[str, Any]:
+        ms = np.array([a.milliseconds for a in self.attempts])
+        n = len(self.attempts)
+        return {
+            "attempts": n,
+            "correct": self.correct,
+            "wrong": self.wrong,
+            "not_found": n - self.correct - self.wrong,
+            "correct_fraction": self.correct / n if n else 0.0,
+            "tolerance_m": self.tolerance_m,
+            "tolerance_deg": self.tolerance_deg,
+            "ms_median": float(np.median(ms)) if n else 0.0,
+            "ms_max": float(ms.max()) if n else 0.0,
+        }
+
+    def to_text(self) -> str:
+        d = self.to_dict()
+        return (
+            f"{d['correct']} of {d['attempts']} frames relocalised within "
+            f"{100 * self.tolerance_m:.0f} cm and {self.tolerance_deg:.0f} deg "
+            f"({100 * d['correct_fraction']:.1f} %), {d['wrong']} wrong, "
+            f"{d['not_found']} not placed; {d['ms_median']:.0f} ms per attempt (median, "
+            f"max {d['ms_max']:.0f})"
+        )
+
+
+def relocalise_frames(
+    slam: SLAM,
+    dataset: RgbdDataset,
+    indices: list[int],
+    tolerance_m: float = 0.05,
+    tolerance_deg: float = 3.0,
+) -> RelocalisationReport:
+    """Place each frame `indices` of `dataset` in `slam`'s map on its own (module
+    docstring). EvaluationError when the dataset has no ground truth."""
+    if dataset.groundtruth is None:
+        raise EvaluationError(f"{dataset.root}: relocalisation needs groundtruth.txt")
+    view = slam.map_view()
+    tracker = slam.tracker
+    detector = tracker.keypoint_map.detector if tracker.keypoint_map is not None else None
+    attempts = []
+    for index in indices:
+        frame = dataset[index]
+        T_true = dataset.groundtruth_pose(frame.timestamp)
+        if T_true is None:
+            continue
+        observation = slam.front_end.process(frame.depth_m, frame.timestamp)
+        start = time.perf_counter()
+        keypoints = None
+        if detector is not None and frame.rgb is not None and observation.cloud is not None:
+            keypoints = detector.detect(frame.rgb, observation.cloud)
+        solved = tracker.relocalise(
+            FrameView.of(observation, slam.config.camera), view, np.eye(4), keypoints
+        )
+        ms = 1e3 * (time.perf_counter() - start)
+        if solved is None:
+            attempts.append(RelocalisationAttempt(index, False, None, None, ms))
+            continue
+        E = invert_pose(T_true) @ solved.T
+        cos = np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        attempts.append(
+            RelocalisationAttempt(
+                index,
+                True,
+                float(np.linalg.norm(E[:3, 3])),
+                float(np.degrees(np.arccos(cos))),
+                ms,
+            )
+        )
+    return RelocalisationReport(attempts, tolerance_m, tolerance_deg)
+
+
+def relocalisation_benchmark(
+    dataset_dir: str | Path,
+    map_path: str | Path | None = None,
+    every: int = 10,
+    config: str | Path | None = None,
+    camera: str | ConfigLayer | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
+) -> RelocalisationReport:
+    """Every `every`-th frame of a TUM-layout dataset placed on its own in a map: the map of
+    `map_path` (primitives only), or else the map of a full SLAM run over the dataset made
+    first (with the keypoints of every keyframe)."""
+    root = Path(dataset_dir)
+    layers: list[str | ConfigLayer] = list(overrides)
+    if map_path is None:
+        layers.insert(0, "tracking.points.every_keyframe=true")
+    cfg = resolve_config(root, config, camera, layers)
+    dataset = open_dataset(root, cfg.camera, cfg.dataset)
+    indices = frame_indices(len(dataset), None, every)
+    if map_path is not None:
+        slam = SLAM(cfg, "merge", map=Map.load(map_path), localize=True)
+        return relocalise_frames(slam, dataset, indices)
+    first = dataset.groundtruth_pose(dataset.timestamps[0])
+    with SLAM(cfg, T_world_first=first) as slam:
+        run_frames(slam, dataset, range(len(dataset)))
+        return relocalise_frames(slam, dataset, indices)

@@ -1,0 +1,233 @@
+"""`planeslam bench long`: cost, map size and memory over long sequences that revisit.
+
+A long sequence is a real or synthetic one replayed in passes, forward then backward
+then forward again, so the camera keeps coming back to the places it has mapped. The
+replay is a new dataset folder of list files pointing (through symlinks) at the source's
+images, with new timestamps every 1/rate seconds and the ground truth replayed at them;
+nothing is copied. The run reports per block of frames: fps, the backend's update time,
+the map's landmarks and both processes' resident memory, then the ATE of the whole run.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from planeslam.app.progress import progress_bar
+from planeslam.config import resolve_config
+from planeslam.core.errors import ConfigError, DatasetFormatError
+from planeslam.core.resources import rss_mb
+from planeslam.eval.trajectory_metrics import evaluate_trajectory
+from planeslam.io.dataset import TumDataset
+from planeslam.io.trajectory import Trajectory, format_tum_row, read_tum
+from planeslam.io.tum_text import row_error, tum_rows
+from planeslam.slam import FrameResult, run_frames, slam_for_dataset
+
+log = logging.getLogger(__name__)
+
+
+def pass_order(num_frames: int, passes: int) -> list[int]:
+    """Source frame indices of `passes` passes over 0..num_frames-1, forward then backward
+    and so on; a turn does not repeat its end frame."""
+    if num_frames < 2 or passes < 1:
+        raise ConfigError(f"a replay needs >= 2 frames and >= 1 pass, got {num_frames}, {passes}")
+    order = list(range(num_frames))
+    forward = True
+    for _ in range(passes - 1):
+        forward = not forward
+        turn = list(range(num_frames - 2, -1, -1)) if not forward else list(range(1, num_frames))
+        order += turn
+    return order
+
+
+def replay_sequence(source: Path, target: Path, passes: int, rate_hz: float = 30.0) -> Path:
+    """Write `target` as `passes` forward-backward passes over the TUM folder `source` (with
+    associations.txt and groundtruth.txt): rgb/ and depth/ are symlinks to the source's,
+    list files and ground truth are new (timestamps k / rate_hz). Returns `target`."""
+    source, target = Path(source).resolve(), Path(target)
+    expected = "t_rgb rgb_path t_depth depth_path"
+    assoc = source / "associations.txt"
+    frames = []
+    for lineno, fields in tum_rows(assoc, "associations", expected):
+        if len(fields) < 4:
+            raise row_error(assoc, lineno, f"'{expected}'", fields)
+        frames.append((float(fields[0]), fields[1], fields[3]))
+    truth = read_tum(source / "groundtruth.txt")
+    order = pass_order(len(frames), passes)
+    target.mkdir(parents=True, exist_ok=True)
+    for folder in ("rgb", "depth"):
+        link = target / folder
+        if not link.exists():
+            os.symlink(source / folder, link, target_is_directory=True)
+    camera = source / "camera.yaml"
+    if camera.is_file() and not (target / "camera.yaml").exists():
+        os.symlink(camera, target / "camera.yaml")
+    stamps = np.arange(len(order)) / rate_hz
+    names = ("rgb.txt", "depth.txt", "associations.txt", "groundtruth.txt")
+    lines: dict[str, list[str]] = {name: [] for name in names}
+    for t, k in zip(stamps, order, strict=True):
+        t_src, rgb, depth = frames[k]
+        lines["rgb.txt"].append(f"{t:.6f} {rgb}")
+        lines["depth.txt"].append(f"{t:.6f} {depth}")
+        lines["associations.txt"].append(f"{t:.6f} {rgb} {t:.6f} {depth}")
+        nearest = int(np.argmin(np.abs(truth.timestamps - t_src)))
+        if abs(truth.timestamps[nearest] - t_src) <= 0.02:
+            lines["groundtruth.txt"].append(format_tum_row(t, truth.T_world_cam[nearest]))
+    header = f"# replay of {source}: {passes} passes, {len(order)} frames at {rate_hz} Hz\n"
+    for name, rows in lines.items():
+        (target / name).write_text(header + "\n".join(rows) + "\n", encoding="utf-8")
+    return target
+
+
+@dataclass
+class Block:
+    """Figures of one block of consecutive frames."""
+
+    first: int
+    frames: int = 0
+    seconds: float = 0.0
+    keyframes: int = 0
+    update_ms: list[float] = field(default_factory=list)
+    map_planes: int = 0
+    rss_main_mb: float = 0.0
+    rss_backend_mb: float = 0.0
+
+    def row(self) -> dict[str, Any]:
+        return {
+            "frames": f"{self.first}-{self.first + self.frames - 1}",
+            "fps": self.frames / self.seconds if self.seconds else 0.0,
+            "keyframes": self.keyframes,
+            "update_ms_median": float(np.median(self.update_ms)) if self.update_ms else 0.0,
+            "update_ms_p95": float(np.percentile(self.update_ms, 95)) if self.update_ms else 0.0,
+            "map_planes": self.map_planes,
+            "rss_main_mb": self.rss_main_mb,
+            "rss_backend_mb": self.rss_backend_mb,
+        }
+
+
+@dataclass(frozen=True)
+class LongRunResult:
+    name: str
+    blocks: list[dict[str, Any]]
+    planes_per_pass: list[int]
+    ate_rmse_m: float | None
+    frames: int
+    seconds: float
+
+    def to_text(self) -> str:
+        head = (
+            "| frames | fps | keyframes | iSAM2 update median / p95 [ms] | plane landmarks "
+            "| RSS main / backend [MiB] |"
+        )
+        lines = [f"**{self.name}**", "", head, "|---|---|---|---|---|---|"]
+        for b in self.blocks:
+            lines.append(
+                f"| {b['frames']} | {b['fps']:.1f} | {b['keyframes']} | "
+                f"{b['update_ms_median']:.0f} / {b['update_ms_p95']:.0f} | {b['map_planes']} | "
+                f"{b['rss_main_mb']:.0f} / {b['rss_backend_mb']:.0f} |"
+            )
+        ate = "-" if self.ate_rmse_m is None else f"{100 * self.ate_rmse_m:.2f} cm"
+        passes = ", ".join(str(n) for n in self.planes_per_pass)
+        lines += [
+            "",
+            f"{self.frames} frames in {self.seconds:.0f} s ({self.frames / self.seconds:.1f} fps); "
+            f"plane landmarks after each pass: {passes}; ATE {ate}",
+        ]
+        return "\n".join(lines)
+
+
+def run_long(
+    root: Path,
+    frames_per_pass: int,
+    block: int = 1000,
+    config: str | Path | None = None,
+    progress: bool = False,
+) -> LongRunResult:
+    """SLAM (the config's backend) over a replayed folder, measured block by block."""
+    cfg = resolve_config(root, config)
+    dataset = TumDataset(root, cfg.camera, cfg.dataset)
+    if dataset.groundtruth is None:
+        raise DatasetFormatError(f"{root}: no groundtruth.txt")
+    blocks: list[Block] = []
+    planes_per_pass: list[int] = []
+    keyframe_of: list[int] = []  # frame index of each keyframe, in order
+    start = last = time.perf_counter()
+    with (
+        slam_for_dataset(cfg, dataset, 0) as slam,
+        progress_bar(len(dataset), root.name, "frame", enabled=progress) as bar,
+    ):
+        pid = getattr(getattr(slam.backend, "_process", None), "pid", None)
+
+        def on_result(result: FrameResult) -> None:
+            nonlocal last
+            k = result.index
+            if k % block == 0:
+                blocks.append(Block(first=k))
+            now = time.perf_counter()
+            b = blocks[-1]
+            b.frames += 1
+            b.seconds += now - last
+            last = now
+            if result.keyframe:
+                b.keyframes += 1
+                keyframe_of.append(k)
+            if (k + 1) % frames_per_pass == 0:
+                planes_per_pass.append(len(slam.map.planes))
+            if (k + 1) % block == 0 or k + 1 == len(dataset):
+                b.map_planes = len(slam.map.planes)
+                b.rss_main_mb = rss_mb()
+                b.rss_backend_mb = rss_mb(pid) if pid else 0.0
+            bar.step()
+
+        summary = run_frames(slam, dataset, range(len(dataset)), on_result)
+    result = slam.backend_result
+    if result is not None:
+        for index, ms in zip(keyframe_of, result.update_ms, strict=False):
+            blocks[index // block].update_ms.append(ms)
+    estimate: Trajectory = slam.trajectory()
+    ate = evaluate_trajectory(dataset.groundtruth, estimate).ate_rmse_m
+    return LongRunResult(
+        name=root.name,
+        blocks=[b.row() for b in blocks],
+        planes_per_pass=planes_per_pass,
+        ate_rmse_m=ate,
+        frames=summary.frames,
+        seconds=time.perf_counter() - start,
+    )
+
+
+def bench_long(
+    source: str,
+    out_dir: Path,
+    passes: int = 5,
+    block: int = 1000,
+    config: str | Path | None = None,
+    progress: bool = False,
+) -> LongRunResult:
+    """`source`: a TUM folder (with associations.txt and groundtruth.txt) or the name of a
+    built-in synthetic scene (rendered into OUT_DIR/data once). Builds the replay of
+    `passes` passes in OUT_DIR and runs it; writes OUT_DIR/long.md."""
+    from planeslam.sim.render import SCENES, synthesize
+
+    out_dir = Path(out_dir)
+    if source in SCENES:
+        folder = out_dir / "data" / source
+        if not (folder / "truth.json").is_file():
+            synthesize(source, folder, seed=0)
+    else:
+        folder = Path(source)
+        if not folder.is_dir():
+            raise DatasetFormatError(
+                f"{source}: neither a dataset folder nor a scene ({', '.join(sorted(SCENES))})"
+            )
+    frames_per_pass = len(TumDataset(folder, resolve_config(folder, config).camera))
+    replay = replay_sequence(folder, out_dir / f"{folder.name}_{passes}pass", passes)
+    result = run_long(replay, frames_per_pass - 1, block, config, progress)
+    (out_dir / "long.md").write_text(result.to_text() + "\n", encoding="utf-8")
+    return result

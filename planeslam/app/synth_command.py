@@ -1,0 +1,100 @@
+"""`planeslam synth`: render a synthetic RGB-D sequence with exact truth (arguments + one call)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from planeslam.core.errors import ConfigError
+
+
+def _range(text: str) -> tuple[float, float]:
+    """'LOW,HIGH' -> (low, high); argparse turns the error into a usage message."""
+    try:
+        low, high = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected LOW,HIGH (two numbers), got {text!r}") from None
+    return low, high
+
+
+def add_synth_command(sub: argparse._SubParsersAction) -> None:
+    """The `synth` sub-command."""
+    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
+    from planeslam.sim.render import NOISE_MODELS, SCENES
+
+    p = _command(
+        sub,
+        "synth",
+        help="render a synthetic RGB-D sequence with exact truth",
+        description="Render a synthetic RGB-D sequence in the TUM layout, with camera.yaml "
+        "and truth.json (planes, edges, corners, objects and their sizes, trajectory, and how "
+        "it was rendered). The options vary the depth noise model, the camera and the "
+        "texture; the scene's geometry and truth stay the same.",
+    )
+    p.add_argument("scene", choices=sorted(SCENES), help="scene to render")
+    p.add_argument("outdir", type=Path, help="output folder (created)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default: scene's)")
+    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument(
+        "--noise-model",
+        choices=sorted(NOISE_MODELS),
+        default="kinect",
+        help="depth error model: kinect (the front end's own sigma(z), default) or disparity "
+        "(structured light: quantised disparity, flying pixels, dropouts, shadows)",
+    )
+    p.add_argument(
+        "--hfov",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="horizontal field of view [deg] (default 62.7: fx 525 px at 640 px)",
+    )
+    p.add_argument(
+        "--camera-height", type=float, default=None, metavar="M", help="camera height [m]"
+    )
+    p.add_argument(
+        "--look-height", type=float, default=None, metavar="M", help="look-at height [m]"
+    )
+    p.add_argument(
+        "--start-azimuth",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="first azimuth on the circle [deg] (box_room_circle)",
+    )
+    p.add_argument(
+        "--texture-seed", type=int, default=None, metavar="N", help="seed of the planes' texture"
+    )
+    p.add_argument(
+        "--texture-brightness",
+        type=_range,
+        default=None,
+        metavar="LOW,HIGH",
+        help="range of the planes' mean albedo in (0, 1] (default 0.6,0.6)",
+    )
+    p.set_defaults(func=_cmd_synth)
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from planeslam.sim.render import SynthOptions, render_sequence
+    from planeslam.sim.scenes import SceneOptions, Texture
+
+    texture = None
+    if args.texture_seed is not None or args.texture_brightness is not None:
+        if args.texture_seed is None:
+            raise ConfigError("--texture-brightness needs --texture-seed")
+        brightness = args.texture_brightness or Texture().brightness
+        texture = Texture(seed=args.texture_seed, brightness=brightness)
+    options = SynthOptions(
+        noise_model=args.noise_model,
+        hfov_deg=args.hfov,
+        scene=SceneOptions(
+            camera_height_m=args.camera_height,
+            target_height_m=args.look_height,
+            start_azimuth_deg=args.start_azimuth,
+            texture=texture,
+        ),
+    )
+    result = render_sequence(args.scene, args.outdir, options, frames=args.frames, seed=args.seed)
+    print(f"wrote {result.num_frames} frames of '{result.scene_name}' to {result.out_dir}")
+    return 0

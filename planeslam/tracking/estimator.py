@@ -1,0 +1,404 @@
+"""One robust pose estimator over every primitive: planes, points (keypoints, corners) and
+line ends, each weighted by its covariance.
+
+Unknown: T_world_cam, perturbed on the right, R <- R exp([w]x), t <- t + R v, with
+xi = (w, v) (6,) in the camera frame. Residuals, all in the camera frame except lines:
+
+- plane (observed n_c, d_c with its fit covariance; map n_w, d_w): the map plane moved
+  into the camera, m = R^T n_w, d = d_w + n_w . t, against the observation:
+  e = (B^T (m - n_c), d - d_c) with B = `tangent_basis(n_c)`, the coordinates of the fit
+  covariance (gtsam OrientedPlane3 local coordinates); de/dw = (B^T [m]x, 0),
+  de/dv = (0, m^T). Covariance: the fit's plus a floor (`plane_sigma_*`), which stands for
+  what a fit from thousands of points does not see (depth bias, segmentation borders).
+- point (observed p_c with covariance C_c; matched world point p_w with C_w): q = R^T (p_w - t)
+  against p_c; dq/dw = [q]x, dq/dv = -I; covariance C_c + R^T C_w R.
+- line end (an observed edge end p_c that is a real end, not cut by the image border;
+  the matched map edge's direction u_w and end e_w): along-line offset
+  u_w . (R p_c + t - e_w). Across the line the edge's two planes already constrain it.
+
+Gauss-Newton with Huber weights on each term's whitened norm (iteratively reweighted).
+The result keeps each kind's information matrix, so `constraints` can say which degrees
+of freedom the planes fixed and which other kind filled the rest.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planeslam.core.geometry import axis_angle_rotation, tangent_basis
+
+
+class Primitive(str, enum.Enum):
+    """A kind of measurement that constrains a pose."""
+
+    PLANES = "planes"
+    POINTS = "points"
+    """Keypoints with depth."""
+    CORNERS = "corners"
+    """Trihedral corner points."""
+    LINES = "lines"
+    """Ends of real plane intersections."""
+    ODOMETRY = "odometry"
+    """RGB-D odometry against the previous frame."""
+    ICP = "icp"
+    """Point-to-plane ICP against the previous frame."""
+
+    def __str__(self) -> str:
+        return self.value
+
+
+@dataclass(frozen=True)
+class PlaneTerms:
+    """Plane correspondences: observed (camera frame) against map (world frame)."""
+
+    n_cam: np.ndarray
+    """(N, 3) observed unit normals."""
+    d_cam: np.ndarray
+    """(N,) observed offsets [m]."""
+    n_world: np.ndarray
+    """(N, 3) map unit normals."""
+    d_world: np.ndarray
+    """(N,) map offsets [m]."""
+    covariance: np.ndarray
+    """(N, 3, 3) observed fit covariance in OrientedPlane3 local coordinates of n_cam
+    (rad^2, rad m, m^2)."""
+
+    def __len__(self) -> int:
+        return len(self.d_cam)
+
+
+@dataclass(frozen=True)
+class PointTerms:
+    """Point correspondences: observed (camera frame) against map (world frame)."""
+
+    p_cam: np.ndarray
+    """(M, 3) observed points [m]."""
+    p_world: np.ndarray
+    """(M, 3) map points [m]."""
+    cov_cam: np.ndarray
+    """(M, 3, 3) observed covariances [m^2], camera frame."""
+    cov_world: np.ndarray
+    """(M, 3, 3) map covariances [m^2], world frame."""
+    kind: Primitive = Primitive.POINTS
+
+    def __len__(self) -> int:
+        return len(self.p_cam)
+
+
+@dataclass(frozen=True)
+class LineTerms:
+    """Observed edge ends (camera frame) against map edge ends along the edge (world)."""
+
+    p_cam: np.ndarray
+    """(L, 3) observed ends [m]."""
+    u_world: np.ndarray
+    """(L, 3) unit directions of the matched map edges."""
+    e_world: np.ndarray
+    """(L, 3) the matched map ends [m]."""
+
+    def __len__(self) -> int:
+        return len(self.p_cam)
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """Noise floors and the robust kernel of `estimate_pose`."""
+
+    plane_sigma_angle_rad: float = np.radians(1.0)
+    """Normal noise added to each plane's fit covariance [rad]."""
+    plane_sigma_offset_m: float = 0.01
+    """Offset noise added to each plane's fit covariance [m]."""
+    line_sigma_m: float = 0.03
+    """Noise of an edge end along its edge [m]."""
+    huber_k: float = 2.0
+    """Huber threshold on a term's whitened norm (sigmas)."""
+    reject_k: float = 6.0
+    """After `settle_iterations`, terms beyond this many sigmas get no weight (gross
+    outliers: Huber alone still lets each pull linearly)."""
+    settle_iterations: int = 3
+    """Iterations with Huber weights alone, before gross outliers are rejected."""
+    iterations: int = 10
+    """Gauss-Newton iterations at most."""
+
+
+@dataclass(frozen=True)
+class PoseConstraints:
+    """Which degrees of freedom of a pose the planes fixed, and what fixed the rest."""
+
+    plane_rotation_dof: int
+    """Rotation axes (0-3) the matched planes constrain: 2 for one normal, 3 for two or
+    more non-parallel ones."""
+    plane_translation_dof: int
+    """Translation directions (0-3) the matched planes constrain: the rank of their normals."""
+    filled_by: tuple[Primitive, ...] = ()
+    """Other primitives that constrain the directions the planes left free."""
+    free: tuple[str, ...] = ()
+    """Directions nothing constrained ('rotation', 'translation'), taken from a prior."""
+    terms: dict[str, int] = field(default_factory=dict)
+    """Correspondences used per primitive (inliers of the robust estimate)."""
+
+    @property
+    def planes_full(self) -> bool:
+        return self.plane_rotation_dof == 3 and self.plane_translation_dof == 3
+
+    def to_record(self) -> dict[str, object]:
+        """The frames.jsonl entry."""
+        return {
+            "planes": {
+                "rotation": self.plane_rotation_dof,
+                "translation": self.plane_translation_dof,
+            },
+            "filled_by": [str(p) for p in self.filled_by],
+            "free": list(self.free),
+            "terms": dict(self.terms),
+        }
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """Result of `estimate_pose`."""
+
+    T_world_cam: np.ndarray
+    """(4, 4)"""
+    information: dict[Primitive, np.ndarray] = field(repr=False)
+    """Per primitive, the (6, 6) information (robust weights applied) at the solution,
+    in xi = (w, v) camera-frame coordinates."""
+    plane_inliers: np.ndarray = field(repr=False)
+    """(N,) bool: plane terms within the Huber threshold at the solution."""
+    point_inliers: list[np.ndarray] = field(repr=False)
+    """Per PointTerms, (M,) bool."""
+    line_inliers: np.ndarray = field(repr=False)
+    """(L,) bool."""
+    iterations: int = 0
+
+    @property
+    def total_information(self) -> np.ndarray:
+        return sum(self.information.values(), np.zeros((6, 6)))
+
+
+# ----------------------------------------------------------------------------- terms
+
+
+def _plane_bases(terms: PlaneTerms) -> np.ndarray:
+    """(N, 2, 3) rows: the tangent basis of each observed normal (the covariance's)."""
+    return np.array([tangent_basis(n).T for n in terms.n_cam]).reshape(-1, 2, 3)
+
+
+def _plane_system(T, terms: PlaneTerms, bases: np.ndarray, W: np.ndarray):
+    """Whitened residuals (N, 3) and Jacobians (N, 3, 6) of the plane terms at T, with the
+    (N, 2, 3) tangent bases and (N, 3, 3) whiteners of `terms`."""
+    R, t = T[:3, :3], T[:3, 3]
+    m = terms.n_world @ R  # rows R^T n_w
+    e = np.empty((len(terms), 3))
+    e[:, :2] = np.einsum("nij,nj->ni", bases, m - terms.n_cam)
+    e[:, 2] = terms.d_world + terms.n_world @ t - terms.d_cam
+    J = np.zeros((len(terms), 3, 6))
+    J[:, :2, :3] = np.cross(bases, m[:, None, :])  # b . (m x w) = (b x m) . w
+    J[:, 2, 3:] = m
+    return (W @ e[:, :, None])[:, :, 0], W @ J
+
+
+def _point_whiteners(T, terms: PointTerms) -> np.ndarray:
+    """(M, 3, 3) whiteners of point terms: observed plus map covariance, the latter turned
+    into the camera frame by T's rotation (fixed for one estimate: it barely changes)."""
+    R = T[:3, :3]
+    return _whitener(terms.cov_cam + np.einsum("ji,njk,kl->nil", R, terms.cov_world, R))
+
+
+def _point_system(T, terms: PointTerms, W: np.ndarray):
+    """Whitened residuals (M, 3) and Jacobians (M, 3, 6) of point terms at T, with the
+    (M, 3, 3) whiteners W."""
+    R, t = T[:3, :3], T[:3, 3]
+    q = (terms.p_world - t) @ R  # rows R^T (p_w - t)
+    e = q - terms.p_cam
+    J = np.zeros((len(terms), 3, 6))
+    J[:, 0, 1], J[:, 0, 2] = -q[:, 2], q[:, 1]
+    J[:, 1, 0], J[:, 1, 2] = q[:, 2], -q[:, 0]
+    J[:, 2, 0], J[:, 2, 1] = -q[:, 1], q[:, 0]
+    J[:, :, 3:] = -np.eye(3)
+    return (W @ e[:, :, None])[:, :, 0], W @ J
+
+
+def _line_system(T, terms: LineTerms, sigma: float):
+    """Whitened residuals (L, 1) and Jacobians (L, 1, 6) of line-end terms at T."""
+    R, t = T[:3, :3], T[:3, 3]
+    p_w = terms.p_cam @ R.T + t
+    e = np.einsum("li,li->l", terms.u_world, p_w - terms.e_world)
+    uR = terms.u_world @ R  # rows u^T R
+    J = np.zeros((len(terms), 1, 6))
+    J[:, 0, :3] = np.cross(terms.p_cam, uR)  # -u^T R [p]x, as a row
+    J[:, 0, 3:] = uR
+    return (e / sigma)[:, None], J / sigma
+
+
+def _whitener(cov: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) W with W^T W = cov^-1 (upper Cholesky factor of the information)."""
+    info = np.linalg.inv(cov)
+    L = np.linalg.cholesky(0.5 * (info + np.swapaxes(info, -1, -2)))
+    return np.swapaxes(L, -1, -2)
+
+
+def _weights(norm: np.ndarray, k: float, cut: float) -> np.ndarray:
+    """Per-term IRLS weight for whitened norms (...): Huber with threshold k, 0 beyond cut."""
+    return np.where(norm <= k, 1.0, k / np.maximum(norm, 1e-12)) * (norm <= cut)
+
+
+def _retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    w, v = xi[:3], xi[3:]
+    angle = float(np.linalg.norm(w))
+    dR = axis_angle_rotation(w / angle, angle) if angle > 1e-12 else np.eye(3)
+    out = T.copy()
+    out[:3, :3] = T[:3, :3] @ dR
+    out[:3, 3] = T[:3, 3] + T[:3, :3] @ v
+    return out
+
+
+# ----------------------------------------------------------------------------- solve
+
+
+def estimate_pose(
+    T_init: np.ndarray,
+    planes: PlaneTerms | None,
+    points: list[PointTerms],
+    lines: LineTerms | None,
+    settings: EstimatorSettings,
+) -> PoseEstimate:
+    """Robust Gauss-Newton estimate of T_world_cam (4, 4) from T_init (4, 4) over every
+    term; a direction no term constrains keeps T_init's value (damped normal equations)."""
+    floor = np.diag([settings.plane_sigma_angle_rad**2] * 2 + [settings.plane_sigma_offset_m**2])
+    T = np.array(T_init, dtype=np.float64)
+    systems: list[tuple[Primitive, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]] = []
+    if planes is not None and len(planes):
+        bases, W = _plane_bases(planes), _whitener(planes.covariance + floor)
+        systems.append((Primitive.PLANES, lambda X: _plane_system(X, planes, bases, W)))
+    for terms in points:
+        if len(terms):
+            W_p = _point_whiteners(T, terms)
+            systems.append((terms.kind, lambda X, t=terms, w=W_p: _point_system(X, t, w)))
+    if lines is not None and len(lines):
+        sigma = settings.line_sigma_m
+        systems.append((Primitive.LINES, lambda X: _line_system(X, lines, sigma)))
+    k = settings.huber_k
+    it = 0
+    for it in range(1, settings.iterations + 1):
+        cut = np.inf if it <= settings.settle_iterations else settings.reject_k
+        H, g = _normal_equations(T, systems, k, cut)[:2]
+        scale = max(float(np.trace(H)), 1e-12)
+        xi = -np.linalg.solve(H + 1e-9 * scale * np.eye(6), g)
+        T = _retract(T, xi)
+        small = np.linalg.norm(xi[:3]) < 1e-7 and np.linalg.norm(xi[3:]) < 1e-7
+        if small and it > settings.settle_iterations:
+            break
+    _, _, info, inliers = _normal_equations(T, systems, k, settings.reject_k)
+    point_kinds = (Primitive.POINTS, Primitive.CORNERS)
+    by_kind = iter(mask for kind, mask in inliers if kind in point_kinds)
+    return PoseEstimate(
+        T_world_cam=T,
+        information=info,
+        plane_inliers=next(
+            (mask for kind, mask in inliers if kind is Primitive.PLANES), np.zeros(0, bool)
+        ),
+        point_inliers=[next(by_kind) if len(t) else np.zeros(0, bool) for t in points],
+        line_inliers=next(
+            (mask for kind, mask in inliers if kind is Primitive.LINES), np.zeros(0, bool)
+        ),
+        iterations=it,
+    )
+
+
+def _normal_equations(T, systems, k: float, cut: float):
+    """H (6, 6), g (6,) of the robustly weighted terms at T, the information per
+    primitive, and per system its kind and inlier mask (within k sigmas)."""
+    H, g = np.zeros((6, 6)), np.zeros(6)
+    info: dict[Primitive, np.ndarray] = {}
+    inliers: list[tuple[Primitive, np.ndarray]] = []
+    for kind, system in systems:
+        e, J = system(T)
+        norm = np.sqrt(np.sum(e * e, axis=1))
+        root = np.sqrt(_weights(norm, k, cut))
+        Jw = (J * root[:, None, None]).reshape(-1, 6)
+        Hk = Jw.T @ Jw
+        H += Hk
+        g += Jw.T @ (e * root[:, None]).reshape(-1)
+        info[kind] = info.get(kind, np.zeros((6, 6))) + Hk
+        inliers.append((kind, norm <= k))
+    return H, g, info, inliers
+
+
+# ----------------------------------------------------------------------------- constraints
+
+
+@dataclass(frozen=True)
+class ConstraintThresholds:
+    """When a direction counts as constrained."""
+
+    plane_rank_ratio: float = 0.02
+    """A plane-constrained direction has at least this fraction of the largest plane
+    information eigenvalue (of its block: rotation or translation): for translation, two
+    normals less than about 16 deg apart count as one (tan^2 of half the angle)."""
+    max_sigma_rad: float = np.radians(2.0)
+    """A direction is constrained by a primitive when its information alone gives at most
+    this rotation sigma [rad] ..."""
+    max_sigma_m: float = 0.03
+    """... or this translation sigma [m]."""
+
+
+def _block_rank(H: np.ndarray, ratio: float) -> tuple[int, np.ndarray]:
+    """(rank, (3, 3-rank) free directions) of a 3x3 information block: eigenvalues above
+    `ratio` of the largest (none when the block is zero)."""
+    lam, V = np.linalg.eigh(0.5 * (H + H.T))
+    good = (lam >= ratio * lam[-1]) & (lam > 0.0)
+    return int(np.count_nonzero(good)), V[:, ~good]
+
+
+def constraints(
+    estimate: PoseEstimate, thresholds: ConstraintThresholds, terms: dict[str, int]
+) -> PoseConstraints:
+    """Which directions the planes constrain, which other primitives constrain the rest
+    (each on its own information), and what nothing constrains."""
+    info = estimate.information
+    H_planes = info.get(Primitive.PLANES, np.zeros((6, 6)))
+    rot_floor = 1.0 / thresholds.max_sigma_rad**2
+    trans_floor = 1.0 / thresholds.max_sigma_m**2
+    r_rank, r_free = _block_rank(H_planes[:3, :3], thresholds.plane_rank_ratio)
+    t_rank, t_free = _block_rank(H_planes[3:, 3:], thresholds.plane_rank_ratio)
+    filled: list[Primitive] = []
+    total = estimate.total_information
+    free: list[str] = []
+    for block, U, floor_value, name in (
+        (slice(0, 3), r_free, rot_floor, "rotation"),
+        (slice(3, 6), t_free, trans_floor, "translation"),
+    ):
+        if not U.shape[1]:
+            continue
+        for kind, Hk in info.items():
+            if kind is Primitive.PLANES:
+                continue
+            along = np.linalg.eigvalsh(U.T @ Hk[block, block] @ U)
+            if along.min() >= floor_value and kind not in filled:
+                filled.append(kind)
+        if np.linalg.eigvalsh(U.T @ total[block, block] @ U).min() < floor_value:
+            free.append(name)
+    return PoseConstraints(
+        plane_rotation_dof=r_rank,
+        plane_translation_dof=t_rank,
+        filled_by=tuple(filled),
+        free=tuple(free),
+        terms=terms,
+    )
+
+
+def fully_constrained(estimate: PoseEstimate, thresholds: ConstraintThresholds) -> bool:
+    """Whether all six directions are constrained by all terms together: the marginal
+    rotation and translation sigmas of the estimate within the thresholds."""
+    H = estimate.total_information
+    scale = max(float(np.trace(H)), 1e-12)
+    C = np.linalg.inv(H + 1e-12 * scale * np.eye(6))
+    return bool(
+        np.linalg.eigvalsh(C[:3, :3])[-1] <= thresholds.max_sigma_rad**2
+        and np.linalg.eigvalsh(C[3:, 3:])[-1] <= thresholds.max_sigma_m**2
+    )

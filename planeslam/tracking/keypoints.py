@@ -1,0 +1,398 @@
+"""Keypoints with depth: the point primitive of tracking and relocalisation.
+
+ORB keypoints (OpenCV) of the colour image whose pixel has valid depth become 3-D
+points in the camera frame (read from the front end's organised cloud, so they share its
+units, undistortion and depth conventions). Pixels on a depth discontinuity (the depth
+in a small window varies by more than a fraction of the depth) are left out: a corner
+in the colour image often lies on an object's silhouette, where a pixel's depth belongs
+to either side.
+
+Noise model: a point at depth z has sigma(z) = a + b z^2 along its viewing ray (the
+sensor's depth noise, `DepthNoiseConfig`) and z * sigma_px / f across it, plus an
+isotropic floor (colour-to-depth registration, keypoint localisation on blur). The
+covariances are (N, 3, 3), camera frame [m^2].
+
+`KeypointMap` keeps the keypoints of the map's keyframes with their poses (world frame
+through T_world_cam, moved when the backend corrects a keyframe), computes a keyframe's
+keypoints only when a later frame needs them (a keyframe's images are kept for the
+`window` most recent keyframes), and answers two questions: which keypoints of recent
+keyframes match a frame's (`match_recent`), and which keyframes anywhere in the map share
+most descriptors with it (`vote`, for relocalisation). `ransac_pose` finds the pose of a
+frame from 3-D point matches (3-point samples, Kabsch, no prior).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig
+from planeslam.tracking.config import PointConfig
+
+logger = logging.getLogger(__name__)
+
+DESCRIPTOR_BYTES = 32
+"""ORB descriptors are 256 bits."""
+
+
+@dataclass(frozen=True)
+class Keypoints:
+    """Keypoints with depth of one frame, camera frame."""
+
+    pixels: np.ndarray
+    """(N, 2) float32 pixel coordinates (u, v)."""
+    points_cam: np.ndarray
+    """(N, 3) float64 points [m], camera frame."""
+    descriptors: np.ndarray
+    """(N, 32) uint8 ORB descriptors."""
+    covariances: np.ndarray = field(repr=False)
+    """(N, 3, 3) point covariances [m^2], camera frame."""
+
+    def __len__(self) -> int:
+        return len(self.points_cam)
+
+    @classmethod
+    def empty(cls) -> Keypoints:
+        return cls(
+            np.zeros((0, 2), np.float32),
+            np.zeros((0, 3)),
+            np.zeros((0, DESCRIPTOR_BYTES), np.uint8),
+            np.zeros((0, 3, 3)),
+        )
+
+
+def point_covariances(
+    points_cam: np.ndarray, sensor: DepthNoiseConfig, focal_px: float, cfg: PointConfig
+) -> np.ndarray:
+    """(N, 3, 3) covariances [m^2] of (N, 3) camera-frame points: sigma(z) along the ray,
+    z * sigma_px / f across it, plus the isotropic floor `cfg.sigma_floor_m`."""
+    z = points_cam[:, 2]
+    ray = points_cam / np.linalg.norm(points_cam, axis=1, keepdims=True)
+    along = sensor.sigma_m(z) / np.maximum(ray[:, 2], 0.1)  # depth noise measured along z
+    across = z * cfg.sigma_px / focal_px
+    outer = np.einsum("ni,nj->nij", ray, ray)
+    cov = (across**2)[:, None, None] * np.eye(3) + (along**2 - across**2)[:, None, None] * outer
+    return cov + cfg.sigma_floor_m**2 * np.eye(3)
+
+
+class KeypointDetector:
+    """ORB keypoints with depth for one camera (`detect`)."""
+
+    def __init__(self, camera: CameraConfig, sensor: DepthNoiseConfig, config: PointConfig):
+        import cv2
+
+        self.camera, self.sensor, self.config = camera, sensor, config
+        self._orb = cv2.ORB.create(
+            nfeatures=config.max_keypoints,
+            scaleFactor=1.2,
+            nlevels=config.pyramid_levels,
+            fastThreshold=config.fast_threshold,
+        )
+        self._window = np.ones((5, 5), np.uint8)
+
+    def detect(self, rgb: np.ndarray, cloud: np.ndarray) -> Keypoints:
+        """Keypoints of an (H, W, 3) uint8 RGB image whose pixel in the (H, W, 3) organised
+        cloud (camera frame [m], invalid (0, 0, 0)) has a valid point off depth edges."""
+        import cv2
+
+        cfg = self.config
+        gray = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY)
+        keypoints, descriptors = self._orb.detectAndCompute(gray, None)
+        if descriptors is None or not len(keypoints):
+            return Keypoints.empty()
+        uv = np.array([k.pt for k in keypoints], dtype=np.float32)
+        h, w = gray.shape
+        col = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
+        row = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, h - 1)
+        z_img = np.ascontiguousarray(cloud[..., 2], dtype=np.float32)
+        z_far = np.where(z_img > 0, z_img, np.float32(1e3))
+        spread = cv2.dilate(z_img, self._window) - cv2.erode(z_far, self._window)
+        points = cloud[row, col].astype(np.float64)
+        z = points[:, 2]
+        keep = (
+            (z > 0)
+            & (z < cfg.max_depth_m)
+            & np.all(np.isfinite(points), axis=1)
+            & (spread[row, col] < cfg.max_depth_step * z)
+        )
+        points = points[keep]
+        return Keypoints(
+            pixels=uv[keep],
+            points_cam=points,
+            descriptors=np.ascontiguousarray(descriptors[keep]),
+            covariances=point_covariances(points, self.sensor, self.camera.fx, cfg),
+        )
+
+
+@dataclass(frozen=True)
+class PointMatches:
+    """Matches of a frame's keypoints with keyframe keypoints, the latter in the world frame."""
+
+    observed: np.ndarray
+    """(M,) row of each match in the frame's `Keypoints`."""
+    points_world: np.ndarray
+    """(M, 3) the matched keyframe points, world frame [m]."""
+    covariances_world: np.ndarray = field(repr=False)
+    """(M, 3, 3) their covariances, world frame [m^2]."""
+    keyframes: np.ndarray = field(repr=False)
+    """(M,) frame index of the keyframe each match came from."""
+
+    def __len__(self) -> int:
+        return len(self.observed)
+
+    def subset(self, keep: np.ndarray) -> PointMatches:
+        return PointMatches(
+            self.observed[keep],
+            self.points_world[keep],
+            self.covariances_world[keep],
+            self.keyframes[keep],
+        )
+
+    @classmethod
+    def empty(cls) -> PointMatches:
+        return cls(
+            np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0, np.int64)
+        )
+
+    @classmethod
+    def concatenate(cls, parts: list[PointMatches]) -> PointMatches:
+        if not parts:
+            return cls.empty()
+        return cls(
+            np.concatenate([p.observed for p in parts]),
+            np.concatenate([p.points_world for p in parts]),
+            np.concatenate([p.covariances_world for p in parts]),
+            np.concatenate([p.keyframes for p in parts]),
+        )
+
+
+def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float) -> np.ndarray:
+    """(M, 2) (query row, train row) pairs of (Q, 32) and (T, 32) uint8 ORB descriptors:
+    nearest neighbours by Hamming distance that pass Lowe's ratio test and are mutual
+    best matches (a train descriptor is used once)."""
+    import cv2
+
+    if len(query) < 2 or len(train) < 2:
+        return np.zeros((0, 2), np.int64)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    rows = [
+        (m[0].queryIdx, m[0].trainIdx, m[0].distance)
+        for m in matcher.knnMatch(query, train, k=2)
+        if len(m) == 2 and m[0].distance < ratio * m[1].distance
+    ]
+    if not rows:
+        return np.zeros((0, 2), np.int64)
+    pairs = np.array(rows, dtype=np.float64)
+    # Mutual: for every train row keep the query with the smallest distance.
+    order = np.lexsort((pairs[:, 2], pairs[:, 1]))
+    pairs = pairs[order]
+    first = np.r_[True, pairs[1:, 1] != pairs[:-1, 1]]
+    return pairs[first][:, :2].astype(np.int64)
+
+
+@dataclass
+class _Keyframe:
+    index: int
+    T_world_cam: np.ndarray
+    keypoints: Keypoints | None = None
+    images: tuple[np.ndarray, np.ndarray] | None = None
+    """(rgb, cloud) until the keypoints are computed or the keyframe leaves the window."""
+
+
+class KeypointMap:
+    """Keypoints of the map's keyframes, world frame through each keyframe's pose."""
+
+    def __init__(self, detector: KeypointDetector) -> None:
+        self.detector = detector
+        self._keyframes: OrderedDict[int, _Keyframe] = OrderedDict()
+        self._stack: tuple[np.ndarray, np.ndarray] | None = None
+        """(descriptors (D, 32), keyframe index per row) of every keyframe with keypoints,
+        rebuilt after a change (for `vote`)."""
+
+    def __len__(self) -> int:
+        return len(self._keyframes)
+
+    @property
+    def keyframe_indices(self) -> list[int]:
+        return list(self._keyframes)
+
+    def add(
+        self,
+        index: int,
+        T_world_cam: np.ndarray,
+        rgb: np.ndarray | None,
+        cloud: np.ndarray | None,
+        keypoints: Keypoints | None = None,
+    ) -> None:
+        """A new keyframe at T_world_cam (4, 4): its keypoints if already computed, else its
+        images (not copied) to compute them when needed; neither without colour."""
+        images = None if keypoints is not None or rgb is None or cloud is None else (rgb, cloud)
+        self._keyframes[index] = _Keyframe(index, np.array(T_world_cam), keypoints, images)
+        window = self.detector.config.window
+        for kf in list(self._keyframes.values())[:-window]:
+            if kf.images is not None and self.detector.config.every_keyframe:
+                self._keypoints(kf)
+            kf.images = None  # out of the window: its images are released
+        if keypoints is not None:
+            self._stack = None
+
+    def move(self, index: int, T_world_cam: np.ndarray) -> None:
+        """The keyframe `index` has a new pose (4, 4) (the backend's correction)."""
+        kf = self._keyframes.get(index)
+        if kf is not None:
+            kf.T_world_cam = np.array(T_world_cam)
+
+    def transform(self, T_new_old: np.ndarray, since: int) -> None:
+        """Move the keyframes from frame `since` on by T_new_old (4, 4) (a joined segment)."""
+        for kf in self._keyframes.values():
+            if kf.index >= since:
+                kf.T_world_cam = T_new_old @ kf.T_world_cam
+
+    def clear(self) -> None:
+        self._keyframes.clear()
+        self._stack = None
+
+    def _keypoints(self, kf: _Keyframe) -> Keypoints | None:
+        if kf.keypoints is None and kf.images is not None:
+            kf.keypoints = self.detector.detect(*kf.images)
+            kf.images = None
+            self._stack = None
+        return kf.keypoints
+
+    def recent(self, count: int) -> list[int]:
+        """Indices of the `count` most recent keyframes that have or can have keypoints."""
+        usable = [i for i, kf in self._keyframes.items() if kf.keypoints or kf.images]
+        return usable[-count:]
+
+    def matches(self, keypoints: Keypoints, indices: list[int]) -> PointMatches:
+        """Matches of `keypoints` with the keyframes `indices` (each matched on its own, so
+        a point seen by several keyframes matches each), world frame."""
+        ratio = self.detector.config.match_ratio
+        parts = []
+        for index in indices:
+            kf = self._keyframes[index]
+            ref = self._keypoints(kf)
+            if ref is None or not len(ref):
+                continue
+            pairs = match_descriptors(keypoints.descriptors, ref.descriptors, ratio)
+            if not len(pairs):
+                continue
+            R, t = kf.T_world_cam[:3, :3], kf.T_world_cam[:3, 3]
+            rows = pairs[:, 1]
+            parts.append(
+                PointMatches(
+                    observed=pairs[:, 0],
+                    points_world=ref.points_cam[rows] @ R.T + t,
+                    covariances_world=np.einsum("ij,njk,lk->nil", R, ref.covariances[rows], R),
+                    keyframes=np.full(len(pairs), index, np.int64),
+                )
+            )
+        return PointMatches.concatenate(parts)
+
+    def vote(self, keypoints: Keypoints, count: int) -> list[int]:
+        """The `count` keyframes (anywhere in the map) holding the most nearest neighbours
+        of `keypoints`' descriptors within `vote_max_distance` bits, best first."""
+        import cv2
+
+        stack = self._descriptor_stack()
+        if stack is None or not len(keypoints):
+            return []
+        descriptors, owner = stack
+        matches = cv2.BFMatcher(cv2.NORM_HAMMING).match(keypoints.descriptors, descriptors)
+        rows = [m.trainIdx for m in matches if m.distance <= self.detector.config.vote_max_distance]
+        if not rows:
+            return []
+        votes = np.bincount(np.searchsorted(np.unique(owner), owner[rows]))
+        keyframes = np.unique(owner)
+        order = np.argsort(-votes, kind="stable")[:count]
+        return [int(keyframes[k]) for k in order if votes[k] > 0]
+
+    def _descriptor_stack(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if self._stack is None:
+            parts = [(i, kf.keypoints) for i, kf in self._keyframes.items() if kf.keypoints]
+            if not parts:
+                return None
+            self._stack = (
+                np.concatenate([k.descriptors for _, k in parts]),
+                np.concatenate([np.full(len(k), i, np.int64) for i, k in parts]),
+            )
+        return self._stack
+
+
+def _kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Batched rigid fit: (S, k, 3) point sets -> R (S, 3, 3), t (S, 3) with dst = R src + t."""
+    c_src, c_dst = src.mean(axis=1), dst.mean(axis=1)
+    H = np.einsum("ski,skj->sij", src - c_src[:, None], dst - c_dst[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.ones((len(H), 3))
+    D[:, 2] = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
+    R = np.swapaxes(Vt, 1, 2) @ (D[:, :, None] * np.swapaxes(U, 1, 2))
+    return R, c_dst - np.einsum("sij,sj->si", R, c_src)
+
+
+@dataclass(frozen=True)
+class PointPose:
+    """A pose from point matches alone, and which matches agree with it."""
+
+    T_world_cam: np.ndarray
+    """(4, 4)"""
+    inliers: np.ndarray
+    """(M,) bool over the matches."""
+
+    @property
+    def count(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+
+def point_residuals(T_world_cam: np.ndarray, p_cam: np.ndarray, p_world: np.ndarray) -> np.ndarray:
+    """(M,) distances [m] between (M, 3) camera points moved by T_world_cam and (M, 3)
+    world points."""
+    return np.linalg.norm(p_cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3] - p_world, axis=1)
+
+
+def inlier_threshold(p_cam: np.ndarray, cfg: PointConfig, sensor: DepthNoiseConfig) -> np.ndarray:
+    """(M,) distance [m] within which a match of camera point p_cam (M, 3) agrees with a
+    pose: `inlier_sigmas` times the depth noise of both ends (taken at the same depth),
+    plus the floor."""
+    sigma = np.hypot(np.sqrt(2.0) * sensor.sigma_m(p_cam[:, 2]), cfg.sigma_floor_m)
+    return cfg.inlier_sigmas * sigma + cfg.inlier_margin_m
+
+
+def ransac_pose(
+    p_cam: np.ndarray,
+    p_world: np.ndarray,
+    threshold_m: np.ndarray,
+    iterations: int,
+    rng: np.random.Generator,
+    min_inliers: int,
+) -> PointPose | None:
+    """T_world_cam from (M, 3) camera / world point matches: `iterations` random 3-point
+    samples (far from collinear), each a Kabsch fit scored by the matches within their
+    (M,) thresholds [m]; the best refitted on its inliers (twice). None with fewer than
+    `min_inliers` agreeing matches."""
+    m = len(p_cam)
+    if m < max(3, min_inliers):
+        return None
+    samples = np.array([rng.choice(m, 3, replace=False) for _ in range(iterations)])
+    a, b = p_cam[samples], p_world[samples]  # (S, 3, 3)
+    spread = np.linalg.norm(np.cross(a[:, 1] - a[:, 0], a[:, 2] - a[:, 0]), axis=1)
+    a, b = a[spread > 1e-3], b[spread > 1e-3]  # twice the triangle's area [m^2]
+    if not len(a):
+        return None
+    R, t = _kabsch(a, b)
+    moved = np.einsum("sij,mj->smi", R, p_cam) + t[:, None, :]
+    inliers = np.linalg.norm(moved - p_world[None], axis=2) < threshold_m[None, :]
+    best = inliers[np.argmax(inliers.sum(axis=1))]
+    for _ in range(2):
+        if np.count_nonzero(best) < 3:
+            return None
+        R1, t1 = _kabsch(p_cam[best][None], p_world[best][None])
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R1[0], t1[0]
+        best = point_residuals(T, p_cam, p_world) < threshold_m
+    if np.count_nonzero(best) < min_inliers:
+        return None
+    return PointPose(T, best)

@@ -1,0 +1,125 @@
+"""Whole-map relocalisation: pose candidates for a frame with no usable prediction.
+
+Candidates come from every primitive (`hypotheses`: corners, plane triples, two planes
+with an edge) against the whole map, and from keypoints: the keyframes anywhere in the
+map that share most descriptors with the frame (`KeypointMap.vote`) are matched in full
+and a point RANSAC gives one more candidate. Every candidate is verified against all of
+the frame's primitives (`hypotheses.score_hypotheses`, with the point matches that agree
+under it); the best `relocalise_candidates` go on to the tracker's robust estimate. Ties
+go to the candidate nearest the prediction, so a symmetric room keeps its orientation
+when nothing else tells them apart.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from planeslam.core.camera import DepthNoiseConfig
+from planeslam.tracking import hypotheses
+from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.keypoints import (
+    KeypointMap,
+    Keypoints,
+    PointMatches,
+    inlier_threshold,
+    ransac_pose,
+)
+from planeslam.tracking.views import FrameView, MapView
+
+
+@dataclass(frozen=True)
+class Candidates:
+    """Relocalisation candidates, best first, and the point matches they were scored with."""
+
+    poses: np.ndarray
+    """(K, 4, 4) T_world_cam."""
+    scores: np.ndarray
+    """(K,) support (`hypotheses.score_hypotheses`)."""
+    matches: PointMatches
+    """Matches of the frame's keypoints with the best-voted keyframes (world frame)."""
+
+
+def primitive_hypotheses(frame: FrameView, view: MapView, cfg: TrackingConfig) -> np.ndarray:
+    """(H, 4, 4) every corner, plane-triple and edge hypothesis against the whole map."""
+    gate = np.radians(cfg.max_angle_deg)
+    return np.concatenate(
+        [
+            hypotheses.corner_hypotheses(frame, view, gate),
+            hypotheses.triple_hypotheses(
+                frame, view, gate, cfg.max_triple_planes, cfg.max_triple_map_planes
+            ),
+            hypotheses.edge_hypotheses(frame, view, gate, cfg.edge_length_ratio),
+        ]
+    )
+
+
+def relocalisation_candidates(
+    frame: FrameView,
+    view: MapView,
+    keypoints: Keypoints | None,
+    keypoint_map: KeypointMap | None,
+    cfg: TrackingConfig,
+    sensor: DepthNoiseConfig,
+    rng: np.random.Generator,
+    T_pred: np.ndarray,
+) -> Candidates:
+    """The `relocalise_candidates` best-supported pose candidates for `frame` anywhere in
+    the map (see the module docstring); T_pred (4, 4) only breaks ties."""
+    poses = primitive_hypotheses(frame, view, cfg) if not view.empty else np.zeros((0, 4, 4))
+    matches = PointMatches.empty()
+    threshold = np.zeros(0)
+    p_cam = np.zeros((0, 3))
+    if keypoints is not None and keypoint_map is not None and len(keypoints):
+        voted = keypoint_map.vote(keypoints, cfg.points.vote_keyframes)
+        matches = keypoint_map.matches(keypoints, voted)
+        if len(matches) >= cfg.points.min_inliers:
+            p_cam = keypoints.points_cam[matches.observed]
+            threshold = inlier_threshold(p_cam, cfg.points, sensor)
+            found = ransac_pose(
+                p_cam,
+                matches.points_world,
+                threshold,
+                cfg.points.ransac_iterations,
+                rng,
+                cfg.points.min_inliers,
+            )
+            if found is not None:
+                poses = np.concatenate([found.T_world_cam[None], poses])
+    if not len(poses):
+        return Candidates(np.zeros((0, 4, 4)), np.zeros(0), matches)
+    point_support = None
+    if len(p_cam):
+        moved = np.einsum("hij,mj->hmi", poses[:, :3, :3], p_cam) + poses[:, None, :3, 3]
+        dist = np.linalg.norm(moved - matches.points_world[None], axis=2)
+        point_support = np.count_nonzero(dist < threshold[None], axis=1).astype(np.float64)
+    if view.empty:
+        scores = point_support / 10.0 if point_support is not None else np.zeros(len(poses))
+    else:
+        scores = hypotheses.score_hypotheses(
+            frame,
+            view,
+            poses,
+            np.radians(cfg.max_angle_deg),
+            cfg.max_offset_m,
+            cfg.max_corner_distance_m,
+            point_support,
+        )
+    distance = np.linalg.norm(poses[:, :3, 3] - T_pred[:3, 3], axis=1)
+    order = np.lexsort((distance, -np.round(scores, 6)))
+    order = _distinct(poses, order, cfg.relocalise_candidates)
+    return Candidates(poses[order], scores[order], matches)
+
+
+def _distinct(poses: np.ndarray, order: np.ndarray, count: int) -> np.ndarray:
+    """`order` without poses within 2 cm and 2 deg of a better one (the same hypothesis
+    from another primitive), at most `count`."""
+    kept: list[int] = []
+    for k in order:
+        differences = (hypotheses.pose_difference(poses[j], poses[k]) for j in kept)
+        if not any(meters < 0.02 and degrees < 2.0 for meters, degrees in differences):
+            kept.append(int(k))
+        if len(kept) == count:
+            break
+    return np.array(kept, dtype=np.int64)

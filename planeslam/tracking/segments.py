@@ -1,0 +1,110 @@
+"""Map segments: tracking that restarts after a loss instead of staying lost.
+
+When a frame cannot be placed in the map, a `Segment` starts at it: later frames are
+tracked in the segment's own frame (the camera frame of its first frame) against its
+most recent keyframe (planes, corners, edges and keypoints, the same estimator as in the
+map), while every frame is also tried against the whole map. The first frame that both
+relocalises in the map and tracks in the segment joins them: T_world_seg follows from its
+two poses, and every frame of the segment gets its world pose through it (the
+orchestrator re-anchors them on the joining frame, so later optimisation moves them too).
+A segment frame that the segment cannot track either starts a new segment; frames of a
+segment that never joins stay lost.
+
+Nothing of a segment enters the map or the factor graph before it joins: the map stays
+one consistent world, and a joined segment's frames hang on the joining keyframe.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig
+from planeslam.core.geometry import invert_pose
+from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.hypotheses import pose_difference
+from planeslam.tracking.tracker import Tracker, TrackResult
+from planeslam.tracking.views import FrameView, MapView
+
+if TYPE_CHECKING:
+    from planeslam.frontend.pipeline import FrameObservation
+
+
+def frame_as_map(frame: FrameView, T_world_cam: np.ndarray) -> MapView:
+    """A frame's planes, corners, edges and objects moved into the world by T_world_cam
+    (4, 4): the map of one keyframe."""
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    normals = frame.normals @ R.T
+    return MapView(
+        plane_ids=frame.plane_ids,
+        normals=normals,
+        d=frame.d - normals @ t,
+        corner_ids=np.arange(len(frame.corner_points), dtype=np.int64),
+        corner_planes=frame.corner_planes,
+        corner_points=frame.corner_points @ R.T + t,
+        corner_convex_edges=frame.corner_convex_edges,
+        plane_weights=frame.areas,
+        edge_planes=frame.edge_planes,
+        edge_segments=frame.edge_segments @ R.T + t,
+        edge_lengths=frame.edge_lengths,
+        edge_angles=frame.edge_angles,
+        edge_convex=frame.edge_convex,
+        object_classes=frame.object_classes,
+        object_sizes=frame.object_sizes,
+        object_centres=frame.object_centres @ R.T + t,
+    )
+
+
+class Segment:
+    """Frames tracked since a loss, in the camera frame of the segment's first frame."""
+
+    def __init__(
+        self,
+        index: int,
+        observation: FrameObservation,
+        rgb: np.ndarray | None,
+        config: TrackingConfig,
+        camera: CameraConfig | None,
+        sensor: DepthNoiseConfig | None,
+        seed: int = 0,
+        result: TrackResult | None = None,
+    ) -> None:
+        """Start at frame `index` (its observation and colour); `result` the map tracker's
+        (lost) result for it, whose keypoints are reused."""
+        self.config = config
+        self.first = index
+        self.tracker = Tracker(config, None, camera, sensor, seed, empty_map_starts=False)
+        self.poses: dict[int, np.ndarray] = {index: np.eye(4)}
+        """Frame index -> T_seg_cam (4, 4) of every frame the segment tracked."""
+        self._view = frame_as_map(FrameView.of(observation, camera), np.eye(4))
+        self._last = np.eye(4)
+        self._velocity = np.eye(4)
+        self._last_keyframe = np.eye(4)
+        keypoints = result.keypoints if result is not None else None
+        self.tracker.add_keyframe(index, np.eye(4), rgb, observation.cloud, keypoints)
+
+    def track(
+        self,
+        index: int,
+        observation: FrameObservation,
+        rgb: np.ndarray | None,
+        depth_m: np.ndarray | None,
+    ) -> np.ndarray | None:
+        """T_seg_cam (4, 4) of frame `index` in the segment, or None when the segment
+        cannot track it. A frame far enough from the last keyframe becomes one."""
+        result = self.tracker.track(
+            observation, self._view, self._last @ self._velocity, rgb, depth_m
+        )
+        if not result.path.maps:
+            return None
+        T = result.T_world_cam
+        self._velocity = invert_pose(self._last) @ T
+        self._last = T
+        self.poses[index] = T
+        meters, degrees = pose_difference(self._last_keyframe, T)
+        if meters >= self.config.segment_keyframe_m or degrees >= self.config.segment_keyframe_deg:
+            self._view = frame_as_map(FrameView.of(observation, self.tracker.camera), T)
+            self._last_keyframe = T
+            self.tracker.add_keyframe(index, T, rgb, observation.cloud, result.keypoints)
+        return T

@@ -1,0 +1,62 @@
+"""The scripts in examples/ run as a user runs them, and do what they say."""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+PUBLIC = re.compile(r"planeslam(\.sim\.(scenes|render))?$")
+"""What an example may import of planeslam: the top-level names, and the synthetic scenes
+standing in for a camera."""
+
+
+def run_example(name: str, *args: str) -> str:
+    done = subprocess.run(
+        [sys.executable, str(EXAMPLES / name), *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return done.stdout
+
+
+def figure(pattern: str, text: str) -> float:
+    match = re.search(pattern, text)
+    assert match, f"{pattern!r} not in:\n{text}"
+    return float(match.group(1))
+
+
+@pytest.mark.parametrize("name", ["own_graph.py", "frame_by_frame.py"])
+def test_examples_use_only_the_public_api(name: str) -> None:
+    tree = ast.parse((EXAMPLES / name).read_text(encoding="utf-8"))
+    modules = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+    modules += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+    inner = [m for m in modules if m and m.startswith("planeslam") and not PUBLIC.match(m)]
+    assert not inner, f"{name} reaches into {inner}: export what it needs from planeslam"
+
+
+def test_own_graph_example() -> None:
+    out = run_example("own_graph.py", "--frames", "12")
+    odometry = figure(r"odometry alone ([\d.]+) m", out)
+    ours = figure(r"with planeslam landmarks ([\d.]+) m", out)
+    assert odometry > 0.02, "the example's odometry should drift"
+    assert ours < 0.01 and ours < odometry / 3, out
+    box = re.search(r"object box: ([\d.]+) x ([\d.]+) x ([\d.]+) m", out)
+    assert box, out
+    sizes = [float(v) for v in box.groups()]
+    assert max(abs(a - b) for a, b in zip(sizes, (0.38, 0.29, 0.19), strict=True)) < 0.03, out
+
+
+def test_frame_by_frame_example() -> None:
+    out = run_example("frame_by_frame.py", "--frames", "12")
+    assert len(re.findall(r"^frame +\d+: ", out, re.MULTILINE)) == 12
+    assert " lost" not in out, out
+    assert figure(r"translation RMSE ([\d.]+) m", out) < 0.01, out
+    assert re.search(r"object box: ", out), out

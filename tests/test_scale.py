@@ -1,0 +1,153 @@
+"""What keeps long runs flat: plane segments consolidated into one landmark, no keyframes
+for revisits that see nothing new, the fused point cloud the map is measured against,
+and the replayed multi-pass sequences of `planeslam bench long`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_map import make_plane, observation, rect_points
+
+from planeslam.app.bench_long import pass_order, replay_sequence
+from planeslam.backend.config import BackendConfig
+from planeslam.backend.keyframes import is_keyframe
+from planeslam.core.geometry import convex_polygon_gap, pose_from_quat
+from planeslam.io.dataset import TumDataset
+from planeslam.io.trajectory import read_tum
+from planeslam.mapping.config import MapConfig
+from planeslam.mapping.sparse_cloud import FusedCloudSize
+from planeslam.mapping.world_map import Map
+
+WALL_U, WALL_V = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+
+
+def wall_piece(x0: float, width: float, z: float = 2.0):
+    """Points of a piece of the wall z = `z` (camera frame), x in [x0, x0 + width]."""
+    return rect_points(np.array([x0, -0.5, z]), width * WALL_U, 1.0 * WALL_V)
+
+
+@pytest.mark.parametrize(
+    ("second", "same"),
+    [
+        (wall_piece(0.8, 1.0), True),  # overlaps the first piece
+        (wall_piece(1.05, 1.0), True),  # 5 cm gap: the same wall
+        (wall_piece(1.5, 1.0), False),  # 50 cm gap: another segment of that plane
+        (wall_piece(0.0, 1.0, z=2.08), False),  # 8 cm in front: another surface
+    ],
+)
+def test_an_unmatched_piece_of_a_mapped_plane_joins_it(second: np.ndarray, same: bool) -> None:
+    m = Map()
+    m.merge(observation([make_plane(0, wall_piece(0.0, 1.0))]), np.eye(4))
+    merged = m.merge(observation([make_plane(0, second)]), np.eye(4))  # no pairs given
+    assert (merged.planes[0] == 0) is same
+    assert len(m.planes) == (1 if same else 2)
+    if same:
+        plane = m.planes[0]
+        assert plane.observations == 2 and plane.num_points == 2 * len(second)
+        assert plane.outline[:, 0].max() == pytest.approx(second[:, 0].max())
+
+
+def test_consolidation_can_be_switched_off_and_never_takes_a_plane_twice() -> None:
+    m = Map(MapConfig(consolidate=False))
+    m.merge(observation([make_plane(0, wall_piece(0.0, 1.0))]), np.eye(4))
+    m.merge(observation([make_plane(0, wall_piece(0.5, 1.0))]), np.eye(4))
+    assert len(m.planes) == 2
+    m = Map()
+    m.merge(observation([make_plane(0, wall_piece(0.0, 1.0))]), np.eye(4))
+    two = observation([make_plane(0, wall_piece(-0.5, 0.6)), make_plane(1, wall_piece(0.9, 0.6))])
+    merged = m.merge(two, np.eye(4))
+    assert sorted(merged.planes.values()) == [0, 1]  # one joins, the other is new
+
+
+def test_polygon_gap() -> None:
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    assert convex_polygon_gap(square, square + 0.5) == 0.0
+    assert convex_polygon_gap(square, square + [1.0, 0.0]) == 0.0
+    assert convex_polygon_gap(square, square + [1.25, 0.0]) == pytest.approx(0.25)
+    assert convex_polygon_gap(square, square + [1.3, 1.4]) == pytest.approx(0.5)
+
+
+def pose(x: float, yaw_deg: float = 0.0) -> np.ndarray:
+    half = np.radians(yaw_deg) / 2
+    return pose_from_quat(np.array([x, 0.0, 0.0]), np.array([0, 0, np.sin(half), np.cos(half)]))
+
+
+def test_a_revisit_that_sees_nothing_new_is_no_keyframe() -> None:
+    config = BackendConfig()
+    earlier = np.stack([pose(0.0), pose(0.5)])
+    # 20 frames after the last keyframe, 1 cm from an earlier one: a revisit
+    assert not is_keyframe(config, pose(1.0), pose(0.01), 20, 0, earlier)
+    assert is_keyframe(config, pose(1.0), pose(0.01), 20, config.keyframe_new_planes, earlier)
+    assert is_keyframe(config, pose(1.0), pose(0.01, yaw_deg=30.0), 20, 0, earlier)
+    assert is_keyframe(config, pose(1.0), pose(2.0), 1, 0, earlier)  # new ground
+    assert not is_keyframe(config, pose(1.0), pose(1.01), 1, 0, earlier)  # too close
+    off = BackendConfig(keyframe_skip_revisits=False)
+    assert is_keyframe(off, pose(1.0), pose(0.01), 20, 0, earlier)
+
+
+def test_fused_cloud_counts_occupied_voxels() -> None:
+    fused = FusedCloudSize(voxel_m=0.01, flush_every=2)
+    grid = np.stack(np.meshgrid(np.arange(10), np.arange(10), [0], indexing="ij"), -1)
+    points = grid.reshape(-1, 3) * 0.01 + 0.005  # 100 voxel centres
+    fused.add(points)
+    fused.add(points + 0.001)  # the same voxels
+    assert fused.voxels == 100
+    fused.add(points + [0.1, 0.0, 0.0])  # 100 new ones
+    fused.add(np.array([[np.nan, 0.0, 0.0]]))
+    assert fused.voxels == 200
+
+
+def test_pass_order_turns_without_repeating_the_end() -> None:
+    assert pass_order(4, 1) == [0, 1, 2, 3]
+    assert pass_order(4, 3) == [0, 1, 2, 3, 2, 1, 0, 1, 2, 3]
+
+
+def test_replay_points_at_the_source_and_replays_its_truth(tmp_path: Path) -> None:
+    from planeslam.sim.render import synthesize
+
+    source = synthesize("box_room_circle", tmp_path / "src", frames=6, seed=0).out_dir
+    replay = replay_sequence(source, tmp_path / "replay", passes=3)
+    from planeslam.config import resolve_config
+
+    cfg = resolve_config(replay)
+    src, rep = TumDataset(source, cfg.camera), TumDataset(replay, cfg.camera)
+    assert len(rep) == 6 + 5 + 5 and (replay / "rgb").is_symlink()
+    np.testing.assert_array_equal(rep[7].depth_m, src[3].depth_m)  # 0..5, 4, 3, ...
+    truth, src_truth = read_tum(replay / "groundtruth.txt"), read_tum(source / "groundtruth.txt")
+    np.testing.assert_allclose(truth.T_world_cam[7], src_truth.T_world_cam[3])
+    np.testing.assert_allclose(np.diff(truth.timestamps), 1 / 30.0, atol=1e-6)
+
+
+def test_a_plane_joins_only_within_its_own_fit_uncertainty() -> None:
+    """2 cm in front of a mapped wall: a small, noisy patch is the wall (its fit allows it),
+    a well-measured surface is not."""
+    import dataclasses
+
+    for sigma_m, same in ((0.02, True), (0.001, False)):
+        m = Map()
+        m.merge(observation([make_plane(0, wall_piece(0.0, 1.0))]), np.eye(4))
+        piece = make_plane(0, wall_piece(0.5, 0.3, z=1.98))
+        cov = np.diag([np.radians(1.0) ** 2] * 2 + [sigma_m**2])
+        m.merge(observation([dataclasses.replace(piece, covariance=cov)]), np.eye(4))
+        assert (len(m.planes) == 1) is same, sigma_m
+
+
+@pytest.mark.integration
+def test_bench_long_reports_blocks_passes_memory_and_ate(tmp_path: Path) -> None:
+    from planeslam.app.bench_long import run_long
+    from planeslam.sim.render import synthesize
+
+    source = synthesize("box_room_circle", tmp_path / "src", seed=0).out_dir  # 24 views
+    replay = replay_sequence(source, tmp_path / "replay", passes=2)
+    result = run_long(replay, frames_per_pass=23, block=20)
+    assert result.frames == 47
+    assert [b["frames"] for b in result.blocks] == ["0-19", "20-39", "40-46"]
+    assert len(result.planes_per_pass) == 2
+    assert result.planes_per_pass[1] <= result.planes_per_pass[0] + 2  # a revisit adds ~none
+    assert all(b["rss_main_mb"] > 0 and b["rss_backend_mb"] > 0 for b in result.blocks)
+    keyframes = [b["keyframes"] for b in result.blocks]
+    assert sum(keyframes) <= 26 and keyframes[-1] == 0  # the second pass adds (almost) none
+    assert result.ate_rmse_m is not None and result.ate_rmse_m < 0.01
+    assert "plane landmarks after each pass" in result.to_text()

@@ -1,0 +1,167 @@
+"""Tracking on whole sequences: wide baselines, a second depth model with another camera,
+a jump into unmapped space bridged by a segment, localisation in a saved map, and honest
+output when frames are lost (left out of trajectory.txt, counted, no ATE without enough)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from conftest import shared_sequence
+
+from planeslam.app.runner import run_sequence
+from planeslam.config import load_config, resolve_config
+from planeslam.core.camera import CameraConfig
+from planeslam.eval.trajectory_metrics import evaluate_trajectory
+from planeslam.io.dataset import TumDataset
+from planeslam.io.trajectory import read_tum
+from planeslam.mapping.world_map import Map
+from planeslam.sim.render import render_frame, synthesize
+from planeslam.sim.scenes import SceneOptions, room_boxes_loop
+from planeslam.slam import SLAM, run_frames
+
+
+def pose_errors(estimated: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """(N,) translation errors [m] of (N, 4, 4) poses against (N, 4, 4) truth (no alignment:
+    the runs start at the true first pose)."""
+    return np.linalg.norm(estimated[:, :3, 3] - truth[:, :3, 3], axis=1)
+
+
+@pytest.mark.slow
+def test_narrow_view_with_the_disparity_depth_model_tracks_every_frame(tmp_path: Path) -> None:
+    """The paper's circle seen by another camera (0.7 m high, fx 600: a narrower view that
+    often holds the floor, one wall and two box faces, no trihedral corner) with the
+    Kinect-like disparity model (quantisation, flying pixels, dropout): before keypoints
+    and prior-free hypotheses 23 of the 24 frames were lost. Measured: 24 of 24, ATE
+    7 mm, box within 1.2 cm."""
+    seq = synthesize(
+        "box_room_circle",
+        tmp_path / "seq",
+        seed=3,
+        noise_model="disparity",
+        camera=CameraConfig(fx=600.0, fy=600.0),
+        scene_options=SceneOptions(camera_height_m=0.7),
+    ).out_dir
+    cfg = resolve_config(seq)
+    dataset = TumDataset(seq, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "isam2", T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
+    summary = run_frames(slam, dataset, range(len(dataset)))
+    assert slam.tracked_frames == 24, summary.paths
+    ev = evaluate_trajectory(dataset.groundtruth, slam.trajectory(), 0.02, 1.0)
+    assert ev.ate_rmse_m < 0.02
+    box = [o for o in slam.map.objects if o.cls == "box"]
+    assert box and np.max(np.abs(np.array(box[0].size_m) - [0.38, 0.29, 0.19])) < 0.02
+
+
+@pytest.mark.slow
+def test_a_segment_bridges_a_jump_into_unmapped_space() -> None:
+    """Frames 0-8 of a 60-frame loop, then a jump to frame 25: the view holds nothing the
+    map can place (the plane fit to the stale prediction and the dense fallbacks are
+    refused), so a segment tracks frames 25-47 on its own until frame 48 relocalises in
+    the map and joins it. Every frame ends up with a pose within 3 cm (measured 1.3-2.7 cm,
+    the merge backend's drift); without segments the 23 frames stay lost."""
+    cfg = load_config("synthetic")
+    scene, path = room_boxes_loop(frames=60)
+    rng = np.random.default_rng(1)
+    order = list(range(9)) + list(range(25, 60))
+    frames = [render_frame(scene, path.T_world_cam[i], cfg.camera, rng) for i in order]
+    truth = path.T_world_cam[order]
+    for segments, tracked in ((True, len(order)), (False, None)):
+        config = dataclasses.replace(
+            cfg, tracking=dataclasses.replace(cfg.tracking, segments=segments)
+        )
+        slam = SLAM(config, "merge", T_world_first=truth[0])
+        lost_online = sum(
+            slam.process(f.depth_m, float(k), f.rgb).lost for k, f in enumerate(frames)
+        )
+        slam.finish()
+        if tracked is None:
+            assert slam.tracked_frames == len(order) - lost_online <= len(order) - 10
+            continue
+        assert lost_online >= 10  # the jump was real: these were lost when processed ...
+        assert slam.tracked_frames == tracked  # ... and have poses after the join
+        trajectory = slam.trajectory()
+        assert np.max(pose_errors(trajectory.T_world_cam, truth)) < 0.03
+
+
+@pytest.mark.slow
+def test_localise_in_a_saved_map_without_changing_it(tmp_path: Path) -> None:
+    """The map of a loop around a room with four boxes, saved and loaded; frames of the
+    loop between those that made it are placed in it with no ground truth and no prior (the
+    first by whole-map relocalisation), then tracked; with `localize` the map stays exactly
+    as loaded, without it it grows. (The paper's box room would not do: a square room and
+    a box look the same turned by 180 deg, and relocalisation refuses to choose.)"""
+    cfg = load_config("synthetic")
+    scene, path = room_boxes_loop(frames=60)
+    rng = np.random.default_rng(3)
+    slam = SLAM(cfg, "merge", T_world_first=path.T_world_cam[0])
+    for k in range(0, 60, 2):
+        f = render_frame(scene, path.T_world_cam[k], cfg.camera, rng)
+        slam.process(f.depth_m, k / 30.0, f.rgb)
+    slam.finish()
+    slam.map.save(tmp_path / "map.json")
+    order = list(range(31, 60, 4))
+    frames = [render_frame(scene, path.T_world_cam[k], cfg.camera, rng) for k in order]
+    before = json.dumps(Map.load(tmp_path / "map.json").to_dict())
+    for localize in (True, False):
+        slam = SLAM(cfg, "merge", map=Map.load(tmp_path / "map.json"), localize=localize)
+        results = [slam.process(f.depth_m, k / 30.0, f.rgb) for k, f in zip(order, frames)]
+        slam.finish()
+        assert results[0].path == "relocalised"
+        assert slam.tracked_frames == len(frames)
+        poses = slam.trajectory().T_world_cam
+        # within the saved map's own accuracy (the merge backend's, about 1 cm here)
+        assert np.max(pose_errors(poses, path.T_world_cam[order])) < 0.03
+        assert (json.dumps(slam.map.to_dict()) == before) is localize
+
+
+def blank_depth(seq: Path, indices: list[int]) -> None:
+    """Overwrite the depth images of frames `indices` with 'no measurement' (0)."""
+    names = sorted((seq / "depth").glob("*.png"), key=lambda p: float(p.stem))
+    for k in indices:
+        cv2.imwrite(str(names[k]), np.zeros((480, 640), np.uint16))
+
+
+def test_lost_frames_are_left_out_and_counted(tmp_path: Path) -> None:
+    seq = synthesize("box_room_circle", tmp_path / "seq", frames=24, seed=3).out_dir
+    blank_depth(seq, [3])
+    result = run_sequence(seq, tmp_path / "out", backend="merge", max_frames=6)
+    out = result.out_dir
+    rows = read_tum(out / "trajectory.txt")
+    assert len(rows) == 5 and 3.0 not in rows.timestamps
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["lost_frames"] == 1 and metrics["tracked_fraction"] == pytest.approx(5 / 6)
+    assert json.loads((out / "eval.json").read_text())["tracked_fraction"] == pytest.approx(5 / 6)
+    assert "over 5 poses (83.3% of the frames tracked)" in result.text()
+    records = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
+    assert records[3]["path"] == "lost" and records[3]["constraints"] is None
+    assert records[1]["constraints"]["planes"] == {"rotation": 3, "translation": 3}
+
+
+def test_a_run_that_tracks_too_little_says_why_there_is_no_ate(tmp_path: Path) -> None:
+    seq = synthesize("box_room_circle", tmp_path / "seq", frames=24, seed=3).out_dir
+    blank_depth(seq, [1, 2, 3])
+    result = run_sequence(seq, tmp_path / "out", backend="merge", max_frames=4)
+    assert result.evaluation is None
+    assert any(w.startswith("no ATE (1 of 4 frames tracked)") for w in result.warnings)
+    assert "no ATE (1 of 4 frames tracked)" in result.text()
+    assert len(read_tum(result.out_dir / "trajectory.txt")) == 1
+    assert (result.out_dir / "metrics.json").is_file()
+
+
+@pytest.mark.data
+@pytest.mark.slow
+def test_7scenes_every_20th_frame(tmp_path: Path) -> None:
+    """7-Scenes RedKitchen at 0.67 s between frames (every 20th of 1000, 10-20 cm and up to
+    14 deg apart). Before: ATE 3.35-6.1 m, 31 of 50 frames on RGB-D odometry. Measured:
+    all 50 tracked, ATE 3.4-4.2 cm (the ground truth's own consistency with the depth is
+    about 2 cm and 1 deg per step here)."""
+    result = run_sequence(shared_sequence("7scenes_redkitchen_1000f"), tmp_path, every=20)
+    assert result.metrics.tracked_fraction is not None and result.metrics.tracked_fraction >= 0.95
+    assert result.evaluation is not None
+    assert result.evaluation.evaluation.ate_rmse_m <= 0.05
+    assert result.evaluation.evaluation.pairs == 50
