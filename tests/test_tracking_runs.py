@@ -109,7 +109,9 @@ def test_localise_in_a_saved_map_without_changing_it(tmp_path: Path) -> None:
     before = json.dumps(Map.load(tmp_path / "map.json").to_dict())
     for localize in (True, False):
         slam = SLAM(cfg, "merge", map=Map.load(tmp_path / "map.json"), localize=localize)
-        results = [slam.process(f.depth_m, k / 30.0, f.rgb) for k, f in zip(order, frames)]
+        results = [
+            slam.process(f.depth_m, k / 30.0, f.rgb) for k, f in zip(order, frames, strict=True)
+        ]
         slam.finish()
         assert results[0].path == "relocalised"
         assert slam.tracked_frames == len(frames)

@@ -151,6 +151,10 @@ class TrackingConfig:
     fraction of the best (a symmetric room seen from its middle)."""
     sigma_line_m: float = 0.03
     """Noise of an edge end along its edge in the robust estimate [m]."""
+    line_gate_m: float = 0.03
+    """An observed edge end pairs with the nearer end of its map edge only within this
+    along the edge [m] under the start pose: a map edge keeps its longest extent, so an
+    end seen shorter (occluded) must not pull the pose."""
     huber_k: float = 2.0
     """Huber threshold of the robust estimate, in sigmas of each term."""
     max_sigma_deg: float = 2.0
@@ -197,6 +201,7 @@ class TrackingConfig:
             "size_gate_ratio",
             "edge_length_ratio",
             "sigma_line_m",
+            "line_gate_m",
             "huber_k",
             "fast_max_correction_m",
             "segment_keyframe_m",

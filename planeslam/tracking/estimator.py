@@ -24,6 +24,7 @@ of freedom the planes fixed and which other kind filled the rest.
 from __future__ import annotations
 
 import enum
+import functools
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -278,7 +279,7 @@ def estimate_pose(
     for terms in points:
         if len(terms):
             W_p = _point_whiteners(T, terms)
-            systems.append((terms.kind, lambda X, t=terms, w=W_p: _point_system(X, t, w)))
+            systems.append((terms.kind, functools.partial(_point_system, terms=terms, W=W_p)))
     if lines is not None and len(lines):
         sigma = settings.line_sigma_m
         systems.append((Primitive.LINES, lambda X: _line_system(X, lines, sigma)))

@@ -370,7 +370,7 @@ class Tracker:
         """The estimator's terms under T: associated planes and corners, the point matches
         within twice their inlier threshold, and the real ends of edges whose two planes
         are associated with the two planes of a map edge (the nearer map end, within
-        `max_corner_distance_m`). Also returns the point matches' mask."""
+        `line_gate_m` along the edge). Also returns the point matches' mask."""
         cfg = self.config
         obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
         cov = (
@@ -432,7 +432,7 @@ class Tracker:
                 p_cam = frame.edge_segments[k, end]
                 s = float(direction @ (T[:3, :3] @ p_cam + T[:3, 3] - seg[0]))
                 target = seg[0] if abs(s) <= abs(s - length) else seg[1]
-                if min(abs(s), abs(s - length)) <= self.config.max_corner_distance_m:
+                if min(abs(s), abs(s - length)) <= self.config.line_gate_m:
                     p.append(p_cam)
                     u.append(direction)
                     e.append(target)
