@@ -85,7 +85,7 @@ def run_on_dask(
                     threads_per_worker=1,
                     processes=True,
                     host="127.0.0.1",
-                    dashboard_address=None,
+                    dashboard_address=":0",  # any free port: never clashes with 8787
                     memory_limit=0,  # as the local executor: no worker is paused or killed
                 )
             )

@@ -21,10 +21,11 @@ import numpy as np
 from planeslam.config import resolve_config
 from planeslam.core.config import ConfigLayer
 from planeslam.core.errors import EvaluationError
-from planeslam.core.geometry import invert_pose
 from planeslam.io.sequence import RgbdDataset, open_dataset
+from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.world_map import Map
 from planeslam.slam import SLAM, frame_indices, run_frames
+from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.views import FrameView
 
 
@@ -41,6 +42,10 @@ class RelocalisationAttempt:
     rotation_error_deg: float | None
     milliseconds: float
     """Wall-clock time of the attempt (front end excluded)."""
+    map_translation_error_m: float | None = None
+    """Against the pose the map's own run gave the frame (its final trajectory): where the
+    map says the frame is, free of the map's own error against the truth; None without."""
+    map_rotation_error_deg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -51,16 +56,27 @@ class RelocalisationReport:
     tolerance_m: float = 0.05
     tolerance_deg: float = 3.0
 
+    def _within(self, meters: float | None, degrees: float | None) -> bool:
+        return (
+            meters is not None
+            and degrees is not None
+            and meters <= self.tolerance_m
+            and degrees <= self.tolerance_deg
+        )
+
     @property
     def correct(self) -> int:
         """Attempts within both tolerances of the truth."""
+        return sum(self._within(a.translation_error_m, a.rotation_error_deg) for a in self.attempts)
+
+    @property
+    def consistent(self) -> int | None:
+        """Attempts within both tolerances of the map run's own pose of the frame (None
+        without that run)."""
+        if any(a.found and a.map_translation_error_m is None for a in self.attempts):
+            return None
         return sum(
-            a.found
-            and a.translation_error_m is not None
-            and a.rotation_error_deg is not None
-            and a.translation_error_m <= self.tolerance_m
-            and a.rotation_error_deg <= self.tolerance_deg
-            for a in self.attempts
+            self._within(a.map_translation_error_m, a.map_rotation_error_deg) for a in self.attempts
         )
 
     @property
@@ -77,6 +93,7 @@ class RelocalisationReport:
             "wrong": self.wrong,
             "not_found": n - self.correct - self.wrong,
             "correct_fraction": self.correct / n if n else 0.0,
+            "consistent_with_map_run": self.consistent,
             "tolerance_m": self.tolerance_m,
             "tolerance_deg": self.tolerance_deg,
             "ms_median": float(np.median(ms)) if n else 0.0,
@@ -91,6 +108,11 @@ class RelocalisationReport:
             f"({100 * d['correct_fraction']:.1f} %), {d['wrong']} wrong, "
             f"{d['not_found']} not placed; {d['ms_median']:.0f} ms per attempt (median, "
             f"max {d['ms_max']:.0f})"
+            + (
+                ""
+                if self.consistent is None
+                else f"; {self.consistent} within them of the map run's own poses"
+            )
         )
 
 
@@ -100,9 +122,11 @@ def relocalise_frames(
     indices: list[int],
     tolerance_m: float = 0.05,
     tolerance_deg: float = 3.0,
+    reference: Trajectory | None = None,
 ) -> RelocalisationReport:
     """Place each frame `indices` of `dataset` in `slam`'s map on its own (module
-    docstring). EvaluationError when the dataset has no ground truth."""
+    docstring), against ground truth and, when given, the map run's own `reference`
+    trajectory. EvaluationError when the dataset has no ground truth."""
     if dataset.groundtruth is None:
         raise EvaluationError(f"{dataset.root}: relocalisation needs groundtruth.txt")
     view = slam.map_view()
@@ -126,16 +150,14 @@ def relocalise_frames(
         if solved is None:
             attempts.append(RelocalisationAttempt(index, False, None, None, ms))
             continue
-        E = invert_pose(T_true) @ solved.T
-        cos = np.clip((np.trace(E[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+        meters, degrees = pose_difference(T_true, solved.T)
+        map_meters = map_degrees = None
+        if reference is not None:
+            row = np.flatnonzero(np.abs(reference.timestamps - frame.timestamp) < 1e-6)
+            if len(row):
+                map_meters, map_degrees = pose_difference(reference.T_world_cam[row[0]], solved.T)
         attempts.append(
-            RelocalisationAttempt(
-                index,
-                True,
-                float(np.linalg.norm(E[:3, 3])),
-                float(np.degrees(np.arccos(cos))),
-                ms,
-            )
+            RelocalisationAttempt(index, True, meters, degrees, ms, map_meters, map_degrees)
         )
     return RelocalisationReport(attempts, tolerance_m, tolerance_deg)
 
@@ -164,4 +186,4 @@ def relocalisation_benchmark(
     first = dataset.groundtruth_pose(dataset.timestamps[0])
     with SLAM(cfg, T_world_first=first) as slam:
         run_frames(slam, dataset, range(len(dataset)))
-        return relocalise_frames(slam, dataset, indices)
+        return relocalise_frames(slam, dataset, indices, reference=slam.trajectory())

@@ -558,10 +558,6 @@ def test_slam_on_the_disparity_rendering(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="issue 12's target (box within 1 cm on the independent rendering) is not met yet",
-    strict=False,
-)
 def test_slam_on_the_independent_rendering_reaches_the_issue_target(tmp_path: Path) -> None:
     """The issue's target on the independent rendering: all 24 poses tracked, box sizes
     within 1 cm, room within 2 cm. At commit 19577cf every frame after the first was lost

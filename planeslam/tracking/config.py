@@ -55,6 +55,8 @@ class PointConfig:
     vote_max_distance: int = 50
     """Relocalisation: descriptor distance [bits] within which a nearest neighbour votes
     for its keyframe."""
+    vote_descriptors: int = 300
+    """Relocalisation: descriptors per keyframe that take part in the vote."""
     vote_keyframes: int = 3
     """Relocalisation: best-voted keyframes matched in full."""
 
@@ -65,6 +67,7 @@ class PointConfig:
             "window",
             "recent_keyframes",
             "ransac_iterations",
+            "vote_descriptors",
             "vote_keyframes",
         ):
             if getattr(self, name) < 1:
@@ -121,11 +124,17 @@ class TrackingConfig:
     """See `size_gate_ratio` [m^2]."""
     max_outlier_rounds: int = 3
     """Rounds of dropping correspondences beyond the residual gates and solving again."""
+    fast_max_gap_s: float = 0.1
+    """Within this time of the last tracked frame a trusted plane pose is taken whatever its
+    distance to the prediction [s]: the camera moved a few cm at most, and a pose off the
+    prediction reflects the map's own corrections (the backend moving planes), not a
+    wrong fit. Frames farther apart need the checks below."""
     fast_max_correction_m: float = 0.05
-    """The plane pose from the prediction alone (the fast path) is taken when it moved the
-    prediction by at most this [m] ...  Beyond it (frames far apart, a jump) the
-    prediction is no longer evidence and three planes always fit exactly: the pose needs
-    the keypoints' agreement, or goes to the robust estimate over every start."""
+    """Beyond `fast_max_gap_s`, the plane pose from the prediction alone (the fast path) is
+    taken when it moved the prediction by at most this [m] ... Beyond it (frames far
+    apart, a jump) the prediction is no longer evidence and three planes always fit
+    exactly: the pose needs the keypoints' agreement, or goes to the robust estimate over
+    every start."""
     fast_max_correction_deg: float = 3.0
     """... and turned it by at most this [deg]; farther, when `points.min_inliers`
     keypoint matches with the last keyframe agree with it."""
@@ -139,11 +148,18 @@ class TrackingConfig:
     edge_length_ratio: float = 1.2
     """An observed edge pairs with map edges at least 1 / edge_length_ratio of its length
     in edge hypotheses (map edges keep the longest length seen)."""
+    relocalise_max_hypotheses: int = 2000
+    """Plane-triple hypotheses at most (and an eighth as many edge pairings, which give up
+    to 8 poses each) in a whole-map search: a box-shaped world matches every orthogonal
+    triple with every other."""
     relocalise_candidates: int = 8
     """Best-supported relocalisation candidates refined in full."""
     relocalise_min_planes: int = 4
     """A relocalised pose needs this many inlier planes (one more than a plane triple
     always fits) ..."""
+    relocalise_min_plane_fraction: float = 0.6
+    """... and at least this fraction of the frame's planes (a floor and a few walls of a
+    box-shaped world fit in many places; most of what the frame sees must fit) ..."""
     relocalise_min_points: int = 30
     """... or this many inlier point matches."""
     relocalise_ambiguity: float = 0.8
@@ -203,6 +219,7 @@ class TrackingConfig:
             "sigma_line_m",
             "line_gate_m",
             "huber_k",
+            "fast_max_gap_s",
             "fast_max_correction_m",
             "segment_keyframe_m",
             "segment_keyframe_deg",
@@ -224,9 +241,15 @@ class TrackingConfig:
             "relocalise_candidates",
             "relocalise_min_planes",
             "relocalise_min_points",
+            "relocalise_max_hypotheses",
         ):
             if getattr(self, name) < 1:
                 raise ConfigError(f"tracking.{name} must be >= 1, got {getattr(self, name)}")
+        if not 0 <= self.relocalise_min_plane_fraction <= 1:
+            raise ConfigError(
+                "tracking.relocalise_min_plane_fraction must be in [0, 1], got "
+                f"{self.relocalise_min_plane_fraction}"
+            )
         if not 0 < self.relocalise_ambiguity <= 1:
             raise ConfigError(
                 f"tracking.relocalise_ambiguity must be in (0, 1], got {self.relocalise_ambiguity}"

@@ -108,11 +108,13 @@ def triple_hypotheses(
     max_angle_rad: float,
     max_frame_planes: int,
     max_map_planes: int,
+    limit: int | None = None,
 ) -> np.ndarray:
     """(H, 4, 4) from triples of planes with independent normals against ordered map
     triples with the same pairwise angles: rotation from the normals, translation from the
     three offsets. The `max_frame_planes` heaviest observed and `max_map_planes` largest map
-    planes take part."""
+    planes take part; at most `limit` pairings (heaviest observed triples first: in a
+    box-shaped world every orthogonal triple matches every other)."""
     obs = independent_triples(frame.normals, frame.weights, max_frame_planes)
     mp = independent_triples(view.normals, view.plane_weights, max_map_planes, ordered=True)
     if not len(obs) or not len(mp):
@@ -123,6 +125,7 @@ def triple_hypotheses(
     io, im = np.nonzero(
         np.all(np.abs(angle_obs[:, None] - angle_map[None]) <= max_angle_rad, axis=-1)
     )
+    io, im = io[:limit], im[:limit]
     if not len(io):
         return np.zeros((0, 4, 4))
     n_src, n_dst = frame.normals[obs[io]], view.normals[mp[im]]  # (H, 3, 3)
@@ -134,12 +137,17 @@ def triple_hypotheses(
 
 
 def edge_hypotheses(
-    frame: FrameView, view: MapView, max_angle_rad: float, max_length_ratio: float
+    frame: FrameView,
+    view: MapView,
+    max_angle_rad: float,
+    max_length_ratio: float,
+    limit: int | None = None,
 ) -> np.ndarray:
     """(H, 4, 4) from each observed edge against each map edge of the same convexity, a
     dihedral angle within the gate and a length at least 1 / max_length_ratio of the
     observed one: rotation from the two normals (both pairings), translation across the
-    line from the offsets and along it from one observed end placed on either map end."""
+    line from the offsets and along it from one observed end placed on either map end.
+    At most `limit` (observed edge, map edge) pairs (the longest map edges first)."""
     if not len(frame.edge_planes) or not len(view.edge_planes):
         return np.zeros((0, 4, 4))
     io, im = np.nonzero(
@@ -147,6 +155,8 @@ def edge_hypotheses(
         & (frame.edge_convex[:, None] == view.edge_convex[None, :])
         & (frame.edge_lengths[:, None] <= max_length_ratio * view.edge_lengths[None, :])
     )
+    order = np.argsort(-view.edge_lengths[im], kind="stable")[:limit]
+    io, im = io[order], im[order]
     if not len(io):
         return np.zeros((0, 4, 4))
     swap = np.array([[0, 1], [1, 0]])
@@ -208,18 +218,46 @@ def score_hypotheses(
     planes both land on a map edge's planes (1 each, when the map edge is not shorter),
     objects whose class and size match a map object near them (2 each), and
     `point_support` (H,) (matched keypoints that agree, / 10)."""
-    if not len(T):
-        return np.zeros(0)
-    planes_ok = plane_support(frame, view, T, max_angle_rad, max_offset_m)
+    scores = [
+        _score_chunk(
+            frame,
+            view,
+            T[k : k + _CHUNK],
+            max_angle_rad,
+            max_offset_m,
+            max_corner_m,
+            None if point_support is None else point_support[k : k + _CHUNK],
+        )
+        for k in range(0, len(T), _CHUNK)
+    ]
+    return np.concatenate(scores) if scores else np.zeros(0)
+
+
+_CHUNK = 128
+"""Hypotheses scored at once: the (H, N, M) plane tests of a large map stay small."""
+
+
+def _score_chunk(
+    frame: FrameView,
+    view: MapView,
+    T: np.ndarray,
+    max_angle_rad: float,
+    max_offset_m: float,
+    max_corner_m: float,
+    point_support: np.ndarray | None,
+) -> np.ndarray:
+    """`score_hypotheses` on one chunk of hypotheses."""
+    partners = _plane_partners(frame, view, T, max_angle_rad, max_offset_m)
+    planes_ok = partners.any(axis=2)
     area = frame.areas if frame.areas is not None else frame.weights
     share = area / max(float(area.sum()), 1e-12)
     score = planes_ok @ (1.0 + share)
     if len(frame.corner_points) and len(view.corner_points):
-        moved = np.einsum("hij,kj->hki", T[:, :3, :3], frame.corner_points) + T[:, None, :3, 3]
+        moved = moved_points(T, frame.corner_points)
         dist = np.linalg.norm(moved[:, :, None] - view.corner_points[None, None], axis=-1)
         score = score + 2.0 * np.count_nonzero((dist <= max_corner_m).any(axis=2), axis=1)
     if len(frame.edge_planes) and len(view.edge_planes):
-        score = score + _edge_support(frame, view, T, max_angle_rad, max_offset_m)
+        score = score + _edge_support(frame, view, partners)
     if len(frame.object_sizes) and len(view.object_sizes):
         score = score + 2.0 * _object_support(frame, view, T, max_corner_m)
     if point_support is not None:
@@ -227,20 +265,23 @@ def score_hypotheses(
     return score
 
 
+def moved_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(H, K, 3): the (K, 3) points moved by each of the (H, 4, 4) poses (batched matmul)."""
+    return np.swapaxes(T[:, :3, :3] @ points.T, 1, 2) + T[:, None, :3, 3]
+
+
 def _plane_partners(frame, view, T, max_angle_rad, max_offset_m) -> np.ndarray:
     """(H, N, M) bool: observed plane n lies within the gates of map plane m under T."""
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    n_world = np.einsum("hij,nj->hni", R, frame.normals)
-    d_world = frame.d[None, :] - np.einsum("hni,hi->hn", n_world, t)
-    cos = np.einsum("hni,mi->hnm", n_world, view.normals)
+    n_world = np.swapaxes(T[:, :3, :3] @ frame.normals.T, 1, 2)  # (H, N, 3)
+    d_world = frame.d[None, :] - np.sum(n_world * T[:, None, :3, 3], axis=2)
+    cos = n_world @ view.normals.T  # (H, N, M)
     offset = np.abs(d_world[:, :, None] - view.d[None, None, :])
     return (cos >= np.cos(max_angle_rad)) & (offset <= max_offset_m)
 
 
-def _edge_support(frame, view, T, max_angle_rad, max_offset_m) -> np.ndarray:
-    """(H,) observed edges whose two planes land on the two planes of a map edge that is at
-    least as long (within 20 % and 5 cm)."""
-    partner = _plane_partners(frame, view, T, max_angle_rad, max_offset_m)  # (H, N, M)
+def _edge_support(frame, view, partner: np.ndarray) -> np.ndarray:
+    """(H,) observed edges whose two planes land (`partner`, (H, N, M) bool) on the two
+    planes of a map edge that is at least as long (within 20 % and 5 cm)."""
     a, b = frame.edge_planes[:, 0], frame.edge_planes[:, 1]  # (Eo,)
     A, B = view.edge_planes[:, 0], view.edge_planes[:, 1]  # (Em,)
     same = partner[:, a][:, :, A] & partner[:, b][:, :, B]  # (H, Eo, Em)
@@ -253,7 +294,7 @@ def _object_support(frame, view, T, max_distance_m) -> np.ndarray:
     """(H,) observed objects with a map object of the same class whose sizes agree (each
     observed size within 20 % and 5 cm of a map size at most as large) and whose centre is
     within max_distance_m of the moved observed centre plus the map object's size."""
-    moved = np.einsum("hij,kj->hki", T[:, :3, :3], frame.object_centres) + T[:, None, :3, 3]
+    moved = moved_points(T, frame.object_centres)
     dist = np.linalg.norm(moved[:, :, None] - view.object_centres[None, None], axis=-1)
     reach = max_distance_m + np.array([max(s) if len(s) else 0.0 for s in view.object_sizes])
     near = dist <= reach[None, None, :]  # (H, Oo, Om)

@@ -47,7 +47,7 @@ class Keypoints:
     points_cam: np.ndarray
     """(N, 3) float64 points [m], camera frame."""
     descriptors: np.ndarray
-    """(N, 32) uint8 ORB descriptors."""
+    """(N, 32) uint8 ORB descriptors (rows: strongest corner response first)."""
     covariances: np.ndarray = field(repr=False)
     """(N, 3, 3) point covariances [m^2], camera frame."""
 
@@ -103,6 +103,8 @@ class KeypointDetector:
         keypoints, descriptors = self._orb.detectAndCompute(gray, None)
         if descriptors is None or not len(keypoints):
             return Keypoints.empty()
+        order = np.argsort([-k.response for k in keypoints], kind="stable")  # strongest first
+        keypoints, descriptors = [keypoints[i] for i in order], descriptors[order]
         uv = np.array([k.pt for k in keypoints], dtype=np.float32)
         h, w = gray.shape
         col = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, w - 1)
@@ -315,9 +317,10 @@ class KeypointMap:
             parts = [(i, kf.keypoints) for i, kf in self._keyframes.items() if kf.keypoints]
             if not parts:
                 return None
+            n = self.detector.config.vote_descriptors  # the strongest of each keyframe
             self._stack = (
-                np.concatenate([k.descriptors for _, k in parts]),
-                np.concatenate([np.full(len(k), i, np.int64) for i, k in parts]),
+                np.concatenate([k.descriptors[:n] for _, k in parts]),
+                np.concatenate([np.full(min(len(k), n), i, np.int64) for i, k in parts]),
             )
         return self._stack
 

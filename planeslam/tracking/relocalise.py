@@ -48,9 +48,16 @@ def primitive_hypotheses(frame: FrameView, view: MapView, cfg: TrackingConfig) -
         [
             hypotheses.corner_hypotheses(frame, view, gate),
             hypotheses.triple_hypotheses(
-                frame, view, gate, cfg.max_triple_planes, cfg.max_triple_map_planes
+                frame,
+                view,
+                gate,
+                cfg.max_triple_planes,
+                cfg.max_triple_map_planes,
+                cfg.relocalise_max_hypotheses,
             ),
-            hypotheses.edge_hypotheses(frame, view, gate, cfg.edge_length_ratio),
+            hypotheses.edge_hypotheses(
+                frame, view, gate, cfg.edge_length_ratio, cfg.relocalise_max_hypotheses // 8
+            ),
         ]
     )
 
@@ -89,14 +96,8 @@ def relocalisation_candidates(
                 poses = np.concatenate([found.T_world_cam[None], poses])
     if not len(poses):
         return Candidates(np.zeros((0, 4, 4)), np.zeros(0), matches)
-    point_support = None
-    if len(p_cam):
-        moved = np.einsum("hij,mj->hmi", poses[:, :3, :3], p_cam) + poses[:, None, :3, 3]
-        dist = np.linalg.norm(moved - matches.points_world[None], axis=2)
-        point_support = np.count_nonzero(dist < threshold[None], axis=1).astype(np.float64)
-    if view.empty:
-        scores = point_support / 10.0 if point_support is not None else np.zeros(len(poses))
-    else:
+    scores = np.zeros(len(poses))
+    if not view.empty:
         scores = hypotheses.score_hypotheses(
             frame,
             view,
@@ -104,12 +105,24 @@ def relocalisation_candidates(
             np.radians(cfg.max_angle_deg),
             cfg.max_offset_m,
             cfg.max_corner_distance_m,
-            point_support,
         )
+    if len(p_cam):  # the points' say, for the point pose and the best of the rest
+        top = np.argsort(-scores, kind="stable")[: 8 * cfg.relocalise_candidates]
+        top = np.union1d(top, [0])  # the point RANSAC pose comes first
+        scores[top] += _agreeing(poses[top], p_cam, matches.points_world, threshold) / 10.0
     distance = np.linalg.norm(poses[:, :3, 3] - T_pred[:3, 3], axis=1)
     order = np.lexsort((distance, -np.round(scores, 6)))
     order = _distinct(poses, order, cfg.relocalise_candidates)
     return Candidates(poses[order], scores[order], matches)
+
+
+def _agreeing(
+    poses: np.ndarray, p_cam: np.ndarray, p_world: np.ndarray, threshold: np.ndarray
+) -> np.ndarray:
+    """(H,) float: matches (camera (M, 3) -> world (M, 3)) within their (M,) thresholds
+    under each of the (H, 4, 4) poses."""
+    dist = np.linalg.norm(hypotheses.moved_points(poses, p_cam) - p_world[None], axis=2)
+    return np.count_nonzero(dist < threshold[None], axis=1).astype(np.float64)
 
 
 def _distinct(poses: np.ndarray, order: np.ndarray, count: int) -> np.ndarray:

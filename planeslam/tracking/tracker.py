@@ -6,8 +6,11 @@ Per frame:
 1. `planes` (the fast path of close frames): associate the frame's planes and corners
    with the map's under the predicted pose (`association.associate_with_corners`), solve
    the closed-form pose (`registration.pose_from_planes_and_points`), associate again and
-   solve once more. Taken when the planes constrain all six degrees of freedom and every
-   residual is within the gates.
+   solve once more. Taken when the planes constrain all six degrees of freedom, every
+   residual is within the gates, and the prediction vouches for it: the last tracked frame
+   is at most `fast_max_gap_s` old (30 Hz: the motion since is a few cm, and a pose off
+   the prediction reflects the map's own corrections), or the pose is near the prediction,
+   or keypoint matches with the last keyframe agree with it.
 2. One robust estimate over every primitive (`estimator.estimate_pose`): planes, corners
    and edge ends associated under a start pose, and keypoints with depth matched against
    the most recent keyframes, each weighted by its covariance. Start poses: the partial
@@ -134,6 +137,8 @@ class PoseSolve:
 class JointSolve:
     """A robust estimate over every primitive and the correspondences it used."""
 
+    T: np.ndarray
+    """(4, 4) T_world_cam, the estimate's."""
     estimate: PoseEstimate
     association: Association
     """Plane and corner correspondences kept (within the gates at the solution)."""
@@ -141,10 +146,6 @@ class JointSolve:
     point_inliers: int
     score: float
     """Support: inlier planes (1 each), corners (2), point matches (1/10)."""
-
-    @property
-    def T(self) -> np.ndarray:
-        return self.estimate.T_world_cam
 
     @property
     def path(self) -> TrackingPath:
@@ -236,6 +237,8 @@ class Tracker:
         """(H, W, 3) organised cloud of the last tracked frame (ICP fallback)."""
         self._previous_rgbd: tuple[np.ndarray, np.ndarray] | None = None
         self._T_world_previous: np.ndarray | None = None
+        self._previous_stamp = -np.inf
+        """Timestamp of the last tracked frame [s]."""
         self.lost_streak = 0
         """Frames lost in a row up to now."""
         self.prediction_valid = True
@@ -487,11 +490,20 @@ class Tracker:
             "lines": int(np.count_nonzero(estimate.line_inliers)),
         }
         found = constraints(estimate, self.thresholds, terms)
+        T = estimate.T_world_cam
         if not found.planes_full and Primitive.POINTS in found.filled_by:
             if point_inliers < cfg.points.min_inliers:
                 return None
         score = terms["planes"] + 2.0 * terms["corners"] + point_inliers / 10.0
-        return JointSolve(estimate, assoc, found, point_inliers, score)
+        return JointSolve(T, estimate, assoc, found, point_inliers, score)
+
+    def _agreeing(self, T: np.ndarray, keypoints: Keypoints | None, matches: PointMatches) -> int:
+        """Point matches within their inlier threshold under T (4, 4)."""
+        if keypoints is None or not len(matches):
+            return 0
+        p_cam = keypoints.points_cam[matches.observed]
+        threshold = inlier_threshold(p_cam, self.config.points, self.sensor)
+        return int(np.count_nonzero(point_residuals(T, p_cam, matches.points_world) < threshold))
 
     def _joint_inliers(
         self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
@@ -564,8 +576,9 @@ class Tracker:
     ) -> JointSolve | None:
         """The best candidate of a whole-map search (`relocalisation_candidates`), refined
         by `joint`. Taken only with more support than a minimal set gives (at least
-        `relocalise_min_planes` inlier planes, or `relocalise_min_points` inlier point
-        matches) and without a rival: a refined candidate elsewhere (beyond 10 cm or 5 deg)
+        `relocalise_min_planes` inlier planes that are `relocalise_min_plane_fraction` of the
+        frame's, or `relocalise_min_points` inlier point matches) and without a rival: a
+        refined candidate elsewhere (beyond 10 cm or 5 deg)
         with at least `relocalise_ambiguity` of its score means the map is ambiguous
         there (a symmetric room), and the frame stays lost."""
         cfg = self.config
@@ -584,9 +597,10 @@ class Tracker:
             return None
         solved.sort(key=lambda s: -s.score)
         best = solved[0]
-        enough = (
-            best.constraints.terms["planes"] >= cfg.relocalise_min_planes
-            or best.point_inliers >= cfg.relocalise_min_points
+        planes = best.constraints.terms["planes"]
+        enough = best.point_inliers >= cfg.relocalise_min_points or (
+            planes >= cfg.relocalise_min_planes
+            and planes >= cfg.relocalise_min_plane_fraction * len(frame.plane_ids)
         )
         if not enough:
             logger.debug(
@@ -698,12 +712,14 @@ class Tracker:
         if self.keypoint_map is not None and rgb is not None and observation.cloud is not None:
             detector, image, xyz = self.keypoint_map.detector, rgb, observation.cloud
             points = _LazyKeypoints(lambda: detector.detect(image, xyz))
-        result = self._track(frame, view, T_pred, cloud, rgbd, points)
+        gap = observation.timestamp - self._previous_stamp
+        result = self._track(frame, view, T_pred, cloud, rgbd, points, gap)
         self.lost_streak = self.lost_streak + 1 if result.lost else 0
         self.prediction_valid = not result.lost
         if not result.lost:
             self._previous_cloud, self._previous_rgbd = cloud, rgbd
             self._T_world_previous = result.T_world_cam
+            self._previous_stamp = observation.timestamp
         return result
 
     def _track(
@@ -714,8 +730,10 @@ class Tracker:
         cloud: np.ndarray | None,
         rgbd,
         points: _LazyKeypoints = _NO_POINTS,
+        frame_gap_s: float = np.inf,
     ) -> TrackResult:
-        """The steps of the module docstring, in order, on prepared inputs."""
+        """The steps of the module docstring, in order, on prepared inputs; `frame_gap_s`
+        the time since the last tracked frame [s]."""
         cfg = self.config
         if view.empty and self.keypoint_map is None and self.empty_map_starts:
             return TrackResult(T_pred, TrackingPath.FIRST, "empty map: the frame starts it")
@@ -726,7 +744,11 @@ class Tracker:
             and solve.registration.status is RegistrationStatus.OK
             and _trusted(solve.registration, cfg)
             and self.prediction_valid  # after a loss the prediction is no evidence
-            and (self._near(solve.T, T_pred) or self._points_agree(solve.T, points))
+            and (
+                frame_gap_s <= cfg.fast_max_gap_s
+                or self._near(solve.T, T_pred)
+                or self._points_agree(solve.T, points)
+            )
         ):
             terms = {
                 "planes": len(solve.association.planes),
@@ -849,12 +871,7 @@ class Tracker:
         if keypoints is None or self.keypoint_map is None or not len(keypoints):
             return False
         matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
-        if len(matches) < self.config.points.min_inliers:
-            return False
-        p_cam = keypoints.points_cam[matches.observed]
-        threshold = inlier_threshold(p_cam, self.config.points, self.sensor)
-        agree = point_residuals(T, p_cam, matches.points_world) < threshold
-        return int(np.count_nonzero(agree)) >= self.config.points.min_inliers
+        return self._agreeing(T, keypoints, matches) >= self.config.points.min_inliers
 
     def _near(self, T: np.ndarray, T_pred: np.ndarray) -> bool:
         """Whether T (4, 4) is within the fast path's correction of the prediction."""

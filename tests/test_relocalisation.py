@@ -1,0 +1,23 @@
+"""The relocalisation benchmark's report: what counts as correct, wrong, consistent."""
+
+from __future__ import annotations
+
+from planeslam.eval.relocalisation import RelocalisationAttempt, RelocalisationReport
+
+
+def test_report_counts_against_truth_and_the_map_run() -> None:
+    attempts = [
+        RelocalisationAttempt(0, True, 0.01, 0.5, 100.0, 0.01, 0.4),  # right
+        RelocalisationAttempt(10, True, 0.07, 1.0, 300.0, 0.02, 0.5),  # the map is off
+        RelocalisationAttempt(20, True, 0.01, 4.0, 200.0, 0.5, 20.0),  # wrong place
+        RelocalisationAttempt(30, False, None, None, 50.0),
+    ]
+    report = RelocalisationReport(attempts, 0.05, 3.0)
+    d = report.to_dict()
+    assert (d["correct"], d["wrong"], d["not_found"]) == (1, 2, 1)
+    assert d["consistent_with_map_run"] == 2
+    assert d["ms_median"] == 150.0 and d["ms_max"] == 300.0
+    assert "1 of 4 frames relocalised within 5 cm and 3 deg (25.0 %)" in report.to_text()
+    assert "2 within them of the map run's own poses" in report.to_text()
+    without_run = RelocalisationReport([RelocalisationAttempt(0, True, 0.01, 0.5, 1.0)])
+    assert without_run.consistent is None and "map run" not in without_run.to_text()
