@@ -168,7 +168,7 @@ class SLAM:
         self.tracker = Tracker(
             config.tracking, odometry, config.camera, config.sensor, config.run.seed
         )
-        self.map = map if map is not None else Map(config.map, config.objects)
+        self.map = map if map is not None else Map(config.map, config.objects, sensor=config.sensor)
         self.localize = localize
         """Track in `map` without changing it."""
         self._in_given_map = map is not None
@@ -484,8 +484,7 @@ class SLAM:
         if observation.cloud is None:
             return
         xyz = observation.cloud[::FUSED_STRIDE, ::FUSED_STRIDE].reshape(-1, 3)
-        xyz = xyz[xyz[:, 2] > 0]
-        self.fused_cloud.add(transform_points(T_world_cam, xyz.astype(np.float64)))
+        self.fused_cloud.add(xyz[xyz[:, 2] > 0], T_world_cam.copy())  # a new array: kept as is
 
     def _add_sparse_points(self, observation, T_world_cam, rgb) -> None:
         """Non-planar points of the frame (label -1), subsampled, into the map's sparse cloud."""

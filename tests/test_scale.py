@@ -4,6 +4,7 @@ and the replayed multi-pass sequences of `planeslam bench long`."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -87,8 +88,9 @@ def test_a_revisit_that_sees_nothing_new_is_no_keyframe() -> None:
     assert is_keyframe(off, pose(1.0), pose(0.01), 20, 0, earlier)
 
 
-def test_fused_cloud_counts_occupied_voxels() -> None:
-    fused = FusedCloudSize(voxel_m=0.01, flush_every=2)
+@pytest.mark.parametrize("background", [False, True])
+def test_fused_cloud_counts_occupied_voxels(background: bool) -> None:
+    fused = FusedCloudSize(voxel_m=0.01, flush_every=2, background=background)
     grid = np.stack(np.meshgrid(np.arange(10), np.arange(10), [0], indexing="ij"), -1)
     points = grid.reshape(-1, 3) * 0.01 + 0.005  # 100 voxel centres
     fused.add(points)
@@ -97,6 +99,10 @@ def test_fused_cloud_counts_occupied_voxels() -> None:
     fused.add(points + [0.1, 0.0, 0.0])  # 100 new ones
     fused.add(np.array([[np.nan, 0.0, 0.0]]))
     assert fused.voxels == 200
+    shift = np.eye(4)
+    shift[:3, 3] = [0.0, 0.2, 0.0]
+    fused.add(points, shift)  # moved by a pose: 100 more
+    assert fused.voxels == 300
 
 
 def test_pass_order_turns_without_repeating_the_end() -> None:
@@ -121,14 +127,12 @@ def test_replay_points_at_the_source_and_replays_its_truth(tmp_path: Path) -> No
 
 
 def test_a_plane_joins_only_within_its_own_fit_uncertainty() -> None:
-    """2 cm in front of a mapped wall: a small, noisy patch is the wall (its fit allows it),
-    a well-measured surface is not."""
-    import dataclasses
-
+    """2 cm in front of a mapped wall 1 m away: a small, noisy patch is the wall (its fit
+    allows it), a well-measured surface is not (at 1 m the sensor's own error is 3 mm)."""
     for sigma_m, same in ((0.02, True), (0.001, False)):
         m = Map()
-        m.merge(observation([make_plane(0, wall_piece(0.0, 1.0))]), np.eye(4))
-        piece = make_plane(0, wall_piece(0.5, 0.3, z=1.98))
+        m.merge(observation([make_plane(0, wall_piece(0.0, 1.0, z=1.0))]), np.eye(4))
+        piece = make_plane(0, wall_piece(0.5, 0.3, z=0.98))
         cov = np.diag([np.radians(1.0) ** 2] * 2 + [sigma_m**2])
         m.merge(observation([dataclasses.replace(piece, covariance=cov)]), np.eye(4))
         assert (len(m.planes) == 1) is same, sigma_m
@@ -151,3 +155,35 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(tmp_path: Path) -> None
     assert sum(keyframes) <= 26 and keyframes[-1] == 0  # the second pass adds (almost) none
     assert result.ate_rmse_m is not None and result.ate_rmse_m < 0.01
     assert "plane landmarks after each pass" in result.to_text()
+
+
+def confident(plane):
+    """`plane` with the tight fit covariance of thousands of independent pixels (1 mrad,
+    1 mm), which a real sensor's correlated depth error exceeds."""
+    return dataclasses.replace(plane, covariance=np.diag([1e-6, 1e-6, 1e-6]))
+
+
+def tilted_patch(z: float, degrees: float, size: float = 0.2) -> np.ndarray:
+    """A size x size patch centred on x = 0.5 of the wall z = `z`, tilted about y."""
+    a = np.radians(degrees)
+    u = size * np.array([np.cos(a), 0.0, np.sin(a)])
+    return rect_points(
+        np.array([0.5 - size / 2, -0.1, z]) - u / 2 + size / 2 * WALL_U, u, size * WALL_V
+    )
+
+
+@pytest.mark.parametrize(
+    ("z", "piece", "correlated", "same"),
+    [
+        (3.0, tilted_patch(3.0, 3.0), 1.0, True),  # small and far: 3 deg is within its error
+        (3.0, tilted_patch(3.0, 3.0), 0.0, False),  # ... but not of its fit alone
+        (1.0, wall_piece(0.2, 0.6, z=0.975), 1.0, False),  # large, near, 2.5 cm in front
+    ],
+)
+def test_the_consolidation_gate_holds_the_sensors_correlated_error(
+    z: float, piece: np.ndarray, correlated: float, same: bool
+) -> None:
+    m = Map(MapConfig(consolidate_correlated_depth=correlated))
+    m.merge(observation([confident(make_plane(0, wall_piece(0.0, 1.0, z=z)))]), np.eye(4))
+    merged = m.merge(observation([confident(make_plane(0, piece))]), np.eye(4))
+    assert (merged.planes[0] == 0) is same

@@ -34,6 +34,9 @@ class MapConfig:
     """... whose covariance is widened by this rotation uncertainty of the pose [rad] ..."""
     consolidate_pose_sigma_m: float = 0.005
     """... and this translation uncertainty [m]; ..."""
+    consolidate_correlated_depth: float = 1.0
+    """... and by a depth error correlated across the patch of this many sigma(z) of the
+    sensor (`sensor:`), which offsets a patch and tilts it by that over its half-width; ..."""
     consolidate_max_angle_deg: float = 10.0
     """... normals within this at most [deg] ..."""
     consolidate_max_offset_m: float = 0.05
@@ -70,6 +73,11 @@ class MapConfig:
         ):
             if not float(getattr(self, name)) > 0:
                 raise ConfigError(f"map.{name} must be > 0, got {getattr(self, name)!r}")
+        if not float(self.consolidate_correlated_depth) >= 0:
+            raise ConfigError(
+                "map.consolidate_correlated_depth must be >= 0 (sigmas of sensor depth), got "
+                f"{self.consolidate_correlated_depth!r}"
+            )
         if not float(self.consolidate_max_gap_m) >= 0:
             raise ConfigError(
                 f"map.consolidate_max_gap_m must be >= 0 [m], got {self.consolidate_max_gap_m!r}"

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import MapError
 from planeslam.frontend.config import ObjectConfig
 from planeslam.mapping.config import MapConfig
@@ -35,6 +36,8 @@ class MapContents:
     up: np.ndarray | None = None
     """(3,) unit world up vector, None before it is known."""
     up_source: UpSource = field(default_factory=UpSource)
+    sensor: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
+    """Depth noise of the frames merged (the consolidation gate's model floor)."""
     cloud: SparseCloud = field(init=False)
     frames_merged: int = 0
 

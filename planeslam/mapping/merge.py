@@ -116,6 +116,7 @@ def _merge_planes(
     R, t = T[:3, :3], T[:3, 3]
     cos_gate = math.cos(math.radians(contents.config.merge_max_angle_deg))
     to_map: dict[int, int] = {}
+    targets: _MapPlanes | None = None  # the map's planes before this frame, when needed
     for k, p in enumerate(observation.segmentation.planes):
         n_w, d_w = transform_plane(T, np.asarray(p.normal, dtype=np.float64), float(p.d))
         c_w = R @ p.centroid + t
@@ -134,8 +135,9 @@ def _merge_planes(
             )
             target = None
         if target is None and contents.config.consolidate:
+            targets = targets or _MapPlanes.of(contents)
             taken = set(to_map.values()) | set(pairs.values())
-            target = _same_plane_segment(contents, p, T, n_w, c_w, outline_w, taken)
+            target = _same_plane_segment(contents, targets, p, T, n_w, c_w, outline_w, taken)
         if target is None:
             pid = contents.new_plane_id()
             contents.planes[pid] = MapPlane(
@@ -158,8 +160,27 @@ def _merge_planes(
     return to_map
 
 
+@dataclass(frozen=True)
+class _MapPlanes:
+    """The map's planes as arrays: ids (M,), normals (M, 3), offsets (M,) [m]."""
+
+    ids: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+
+    @staticmethod
+    def of(contents: MapContents) -> _MapPlanes:
+        planes = list(contents.planes.values())
+        return _MapPlanes(
+            np.array([p.id for p in planes], dtype=np.int64),
+            np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3),
+            np.array([p.d for p in planes], dtype=np.float64),
+        )
+
+
 def _same_plane_segment(
     contents: MapContents,
+    targets: _MapPlanes,
     plane: Plane,
     T: np.ndarray,
     n_w: np.ndarray,
@@ -167,41 +188,56 @@ def _same_plane_segment(
     outline_w: np.ndarray,
     taken: set[int],
 ) -> int | None:
-    """The map plane (not in `taken`) that the observed `plane` (camera frame; seen from
-    T_world_cam `T`; n_w, centroid c_w (3,) and outline (K, 3) in the world frame) is a part
-    of, or None. Same plane: the map plane, moved to the camera, within
-    `consolidate_max_sigmas` of the observation in its own fit covariance (tangent normal,
-    offset; widened by the pose uncertainty), within the angle and offset caps; then the
-    outlines overlapping or nearest within `consolidate_max_gap_m`."""
+    """The map plane of `targets` (not in `taken`) that the observed `plane` (camera frame;
+    seen from T_world_cam `T`; n_w, centroid c_w (3,) and outline (K, 3) in the world
+    frame) is a part of, or None. Same plane: the map plane, moved to the camera, within
+    `consolidate_max_sigmas` of the observation in its fit covariance (tangent normal,
+    offset; widened by `_gate_floor`), within the angle and offset caps; then the outlines
+    overlapping or nearest within `consolidate_max_gap_m`."""
     cfg = contents.config
-    ids = [pid for pid in contents.planes if pid not in taken]
-    if not ids:
-        return None
-    planes = [contents.planes[pid] for pid in ids]
-    normals = np.stack([p.normal for p in planes])
-    offsets = np.array([p.d for p in planes])
-    n_cam = normals @ T[:3, :3]  # rows R^T n: the map planes in the camera frame
-    d_cam = offsets + normals @ T[:3, 3]
-    error = np.column_stack([n_cam @ tangent_basis(plane.normal), d_cam - plane.d])
-    floor = np.array([cfg.consolidate_pose_sigma_rad] * 2 + [cfg.consolidate_pose_sigma_m])
-    information = np.linalg.inv(np.asarray(plane.covariance) + np.diag(floor**2))
-    mahalanobis2 = np.einsum("mi,ij,mj->m", error, information, error)
-    close = (
-        (mahalanobis2 <= cfg.consolidate_max_sigmas**2)
-        & (normals @ n_w >= math.cos(math.radians(cfg.consolidate_max_angle_deg)))
-        & (np.abs(normals @ c_w + offsets) <= cfg.consolidate_max_offset_m)
+    normals, offsets = targets.normals, targets.offsets
+    cos_cap = math.cos(math.radians(cfg.consolidate_max_angle_deg))
+    close = (normals @ n_w >= cos_cap) & (
+        np.abs(normals @ c_w + offsets) <= cfg.consolidate_max_offset_m
     )
+    close &= ~np.isin(targets.ids, list(taken))
+    rows = np.flatnonzero(close)
+    if not len(rows):
+        return None
+    n_cam = normals[rows] @ T[:3, :3]  # rows R^T n: the map planes in the camera frame
+    d_cam = offsets[rows] + normals[rows] @ T[:3, 3]
+    error = np.column_stack([n_cam @ tangent_basis(plane.normal), d_cam - plane.d])
+    information = np.linalg.inv(np.asarray(plane.covariance) + _gate_floor(contents, plane))
+    mahalanobis2 = np.einsum("mi,ij,mj->m", error, information, error)
+    rows = rows[mahalanobis2 <= cfg.consolidate_max_sigmas**2]
     best, best_gap = None, cfg.consolidate_max_gap_m
-    for row in np.flatnonzero(close):
-        candidate = planes[row]
+    for row in rows:
+        candidate = contents.planes[int(targets.ids[row])]
         axes, foot = plane_basis(candidate.normal), -candidate.d * candidate.normal
         gap = convex_polygon_gap(
             convex_hull_2d((candidate.outline - foot) @ axes.T),
             convex_hull_2d((outline_w - foot) @ axes.T),
         )
         if gap <= best_gap:
-            best, best_gap = ids[row], gap
+            best, best_gap = int(targets.ids[row]), gap
     return best
+
+
+def _gate_floor(contents: MapContents, plane: Plane) -> np.ndarray:
+    """(3, 3) diagonal covariance (tangent normal [rad^2] x 2, offset [m^2]) added to an
+    observed plane's fit covariance in the consolidation gate. The fit covariance counts
+    every pixel as independent, but a depth sensor's error is correlated across a patch
+    (calibration, quantisation): a patch of half-width r [m] at depth z [m] is off by about
+    k sigma(z) and tilted by k sigma(z) / r (k: `consolidate_correlated_depth`). Small far
+    patches get the wide gate their real error needs; large near planes keep a tight one.
+    Plus the pose uncertainty `consolidate_pose_sigma_*`."""
+    cfg = contents.config
+    depth = max(float(plane.centroid[2]), 0.0)
+    sigma_z = cfg.consolidate_correlated_depth * contents.sensor.sigma_m(depth)
+    half_width = max(0.5 * math.sqrt(max(float(plane.area_m2), 0.0)), 0.01)
+    angle = math.hypot(cfg.consolidate_pose_sigma_rad, sigma_z / half_width)
+    offset = math.hypot(cfg.consolidate_pose_sigma_m, sigma_z)
+    return np.diag([angle**2, angle**2, offset**2])
 
 
 def _refit_plane(

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import networkx as nx
 import numpy as np
 
+from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import MapError
 from planeslam.core.geometry import unit
 from planeslam.core.types import PlaneEstimate
@@ -51,11 +52,17 @@ class Map:
         config: MapConfig | None = None,
         object_config: ObjectConfig | None = None,
         patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
+        sensor: DepthNoiseConfig | None = None,
     ) -> None:
         """`object_config` gives the orientation tolerance, corner and size parameters of
-        re-aggregation (its gravity keys are unused: see `set_gravity`)."""
+        re-aggregation (its gravity keys are unused: see `set_gravity`); `sensor` the depth
+        noise of the frames to merge (consolidation's gate)."""
         self.patterns = tuple(patterns)
-        self._contents = MapContents(config or MapConfig(), object_config or ObjectConfig())
+        self._contents = MapContents(
+            config or MapConfig(),
+            object_config or ObjectConfig(),
+            sensor=sensor or DepthNoiseConfig(),
+        )
 
     # ------------------------------------------------------------------ read access
 
