@@ -159,8 +159,8 @@ def plot_map_top_view(
     planes = world_map.planes
     outlines = [p.outline for p in planes.values() if len(p.outline) >= 3]
     everything = np.concatenate([est, gt, *outlines]) if outlines else np.concatenate([est, gt])
-    basis, names = top_view_basis(world_map.gravity_up, everything)
     up = world_map.gravity_up
+    basis, names = top_view_basis(up, everything)
     colors = {pid: c / 255.0 for pid, c in world_map.plane_colors().items()}
 
     fig = Figure(figsize=(9, 8), layout="constrained")

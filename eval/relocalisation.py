@@ -129,14 +129,15 @@ def relocalise_frames(
     trajectory. EvaluationError when the dataset has no ground truth."""
     if dataset.groundtruth is None:
         raise EvaluationError(f"{dataset.root}: relocalisation needs groundtruth.txt")
+    window_s = dataset.config.max_time_difference_s
     view = slam.map_view()
     tracker = slam.tracker
     detector = tracker.keypoint_map.detector if tracker.keypoint_map is not None else None
     attempts = []
     for index in indices:
         frame = dataset[index]
-        T_true = dataset.groundtruth_pose(frame.timestamp)
-        if T_true is None:
+        T_true = dataset.groundtruth.pose_near(frame.timestamp, window_s)
+        if T_true is None:  # no ground truth for this frame: nothing to score against
             continue
         observation = slam.front_end.process(frame.depth_m, frame.timestamp)
         start = time.perf_counter()
@@ -153,9 +154,9 @@ def relocalise_frames(
         meters, degrees = pose_difference(T_true, solved.T)
         map_meters = map_degrees = None
         if reference is not None:
-            row = np.flatnonzero(np.abs(reference.timestamps - frame.timestamp) < 1e-6)
-            if len(row):
-                map_meters, map_degrees = pose_difference(reference.T_world_cam[row[0]], solved.T)
+            T_map_run = reference.pose_near(frame.timestamp, 1e-6)  # the same frame's
+            if T_map_run is not None:
+                map_meters, map_degrees = pose_difference(T_map_run, solved.T)
         attempts.append(
             RelocalisationAttempt(index, True, meters, degrees, ms, map_meters, map_degrees)
         )

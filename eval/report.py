@@ -8,6 +8,7 @@ import dataclasses
 import html
 import json
 import logging
+from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
@@ -16,6 +17,7 @@ from typing import Any
 
 from planeslam import __version__
 from planeslam.core.errors import EvaluationError
+from planeslam.core.safe_files import write_text_atomic
 from planeslam.io.trajectory import read_tum
 from planeslam.mapping.world_map import Map
 
@@ -91,8 +93,8 @@ def write_evaluation(evaluation: TrajectoryEvaluation, out_dir: str | Path) -> d
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    eval_path = out / EVAL_JSON
-    eval_path.write_text(json.dumps(evaluation.to_dict(), indent=2) + "\n", encoding="utf-8")
+    text = json.dumps(evaluation.to_dict(), indent=2) + "\n"
+    eval_path = write_text_atomic(out / EVAL_JSON, text)
     paths = {
         "eval": eval_path,
         "trajectory_plot": plot_trajectories(evaluation, out / TRAJECTORY_PNG),
@@ -222,19 +224,19 @@ def _image(path: Path, caption: str) -> str:
     )
 
 
-def _header(info: RunInfo | None, title: str) -> str:
+def _header(info: RunInfo | None) -> str:
     generated = datetime.now(timezone.utc).isoformat(timespec="seconds")
     if info is None:
-        rows = [_row("planeslam version", __version__), _row("report written (UTC)", generated)]
-        return '<table class="header">\n' + "\n".join(rows) + "\n</table>"
-    rows = [
-        _row("dataset", f"{info.dataset_name} ({info.dataset})"),
-        _row("backend", info.backend),
-        _row("command", info.command or "(called from Python)"),
-        _row("planeslam version", info.version),
-        _row("run started (UTC)", info.started_utc or "n/a"),
-        _row("report written (UTC)", generated),
-    ]
+        rows = [_row("planeslam version", __version__)]
+    else:
+        rows = [
+            _row("dataset", f"{info.dataset_name} ({info.dataset})"),
+            _row("backend", info.backend),
+            _row("command", info.command or "(called from Python)"),
+            _row("planeslam version", info.version),
+            _row("run started (UTC)", info.started_utc or "n/a"),
+        ]
+    rows.append(_row("report written (UTC)", generated))
     return '<table class="header">\n' + "\n".join(rows) + "\n</table>"
 
 
@@ -259,9 +261,8 @@ def _headline(evaluation: Mapping[str, Any], metrics: Mapping[str, Any]) -> str:
 
 def _tracking_section(metrics: Mapping[str, Any], records: list[dict[str, Any]]) -> str:
     paths = dict(metrics.get("tracking_paths") or {})
-    if not paths and records:
-        for r in records:
-            paths[str(r["path"])] = paths.get(str(r["path"]), 0) + 1
+    if not paths:
+        paths = Counter(str(r["path"]) for r in records)
     total = sum(paths.values())
     parts = []
     if paths:
@@ -373,7 +374,7 @@ def write_report(
     gt = read_tum(gt_file) if gt_file.is_file() else None
     world_map = Map.load(out / MAP_JSON) if (out / MAP_JSON).is_file() else None
 
-    sections = [_header(info, title), _headline(evaluation, metrics)]
+    sections = [_header(info), _headline(evaluation, metrics)]
     if world_map is not None:
         est_path = out / TRAJECTORY_TXT
         estimate = read_tum(est_path) if est_path.is_file() else None
@@ -450,8 +451,7 @@ figure {{ margin: 1em 0; }}
 </body>
 </html>
 """
-    path = out / REPORT_HTML
-    path.write_text(page, encoding="utf-8")
+    path = write_text_atomic(out / REPORT_HTML, page)
     log.info("wrote %s", path)
     return path
 

@@ -12,6 +12,7 @@ from typing import Any
 
 from planeslam import __version__
 from planeslam.core.errors import EvaluationError
+from planeslam.core.safe_files import write_text_atomic
 
 RUN_JSON = "run.json"
 SCHEMA = "planeslam.run/1"
@@ -45,9 +46,8 @@ class RunInfo:
 
 def write_run_info(info: RunInfo, out_dir: str | Path) -> Path:
     """Write `out_dir`/run.json; returns its path."""
-    path = Path(out_dir) / RUN_JSON
-    path.write_text(json.dumps({"schema": SCHEMA, **asdict(info)}, indent=2) + "\n", "utf-8")
-    return path
+    text = json.dumps({"schema": SCHEMA, **asdict(info)}, indent=2) + "\n"
+    return write_text_atomic(Path(out_dir) / RUN_JSON, text)
 
 
 def read_run_info(run_dir: str | Path) -> RunInfo:

@@ -377,8 +377,9 @@ class PlaneLandmarks:
             if lm not in self._planes:
                 n_world, d_world = transform_plane(T, n_cam, float(plane.d_cam))
                 if not values.exists(key):
-                    values.insert(key, gtsam.OrientedPlane3(np.r_[n_world, d_world]))
-                    new_values.insert(key, gtsam.OrientedPlane3(np.r_[n_world, d_world]))
+                    value = gtsam.OrientedPlane3(np.r_[n_world, d_world])
+                    values.insert(key, value)
+                    new_values.insert(key, value)
                     new_keys.append(key)
                 self._planes[lm] = PlaneEstimate(n_world, d_world)
                 self._next_plane = max(self._next_plane, lm + 1)

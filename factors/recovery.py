@@ -77,9 +77,11 @@ class RecoveringISAM2:
 
     def __init__(self, params: gtsam.ISAM2Params | None = None, extra_updates: int = 0) -> None:
         """`extra_updates`: relinearising `ISAM2.update()` calls after each update."""
-        if isinstance(extra_updates, bool) or int(extra_updates) != extra_updates:
-            raise ConfigError(f"extra_updates={extra_updates!r}: expected an integer >= 0")
-        if extra_updates < 0:
+        if (
+            isinstance(extra_updates, bool)
+            or int(extra_updates) != extra_updates
+            or extra_updates < 0
+        ):
             raise ConfigError(f"extra_updates={extra_updates!r}: expected an integer >= 0")
         self.params = params if params is not None else gtsam.ISAM2Params()
         self.extra_updates = int(extra_updates)

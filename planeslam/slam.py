@@ -68,8 +68,6 @@ from planeslam.tracking.tracker import MapView, Tracker, TrackResult
 
 logger = logging.getLogger(__name__)
 
-BACKENDS = tuple(k.value for k in BackendKind)
-
 SPARSE_STRIDE = 8
 """Every SPARSE_STRIDE-th pixel (each direction) off all planes goes to the sparse cloud."""
 
@@ -188,6 +186,8 @@ class SLAM:
         """Keyframe pose when it was added (tracked, or optimised by its own update)."""
         self._keyframe_array: np.ndarray | None = None
         """`_keyframe_online` as one (K, 4, 4) array, rebuilt after a change."""
+        self._map_view: tuple[int, MapView] | None = None
+        """(map revision, its view) of the last `map_view`."""
         self._keyframe_final: dict[int, np.ndarray] = {}
         """Keyframe pose after the last optimisation (`finish`); the online one until then."""
         self._last_keyframe: int | None = None
@@ -238,8 +238,11 @@ class SLAM:
         return self._last_tracked @ self._velocity
 
     def map_view(self) -> MapView:
-        """The map's planes, corners, edges and objects for tracking (world frame)."""
-        return map_view(self.map)
+        """The map's planes, corners, edges and objects for tracking (world frame), rebuilt
+        only after the map changed (most frames are not keyframes)."""
+        if self._map_view is None or self._map_view[0] != self.map.revision:
+            self._map_view = (self.map.revision, map_view(self.map))
+        return self._map_view[1]
 
     def _is_keyframe(self, T_world_cam: np.ndarray, new_planes: int) -> bool:
         if self._last_keyframe is None:
@@ -311,7 +314,7 @@ class SLAM:
         self._remember(index, timestamp, T_world_cam, keyframe, track.lost)
         if joined is not None:
             self._join(index, joined)
-        valid = np.count_nonzero(np.isfinite(depth_m) & (depth_m > 0))
+        valid = np.count_nonzero(depth_m > 0)  # clean_depth set NaN and +-inf to 0
         self.pointcloud_bytes += POINT_BYTES * int(valid)
         if track.lost:
             logger.info("frame %d (%.3f s) lost: %s", index, timestamp, track.reason)

@@ -59,6 +59,11 @@ def replay_sequence(source: Path, target: Path, passes: int, rate_hz: float = 30
             raise row_error(assoc, lineno, f"'{expected}'", fields)
         frames.append((float(fields[0]), fields[1], fields[3]))
     truth = read_tum(source / "groundtruth.txt")
+    truth_of: list[np.ndarray | None] = []  # per source frame: ground truth within 20 ms
+    for t_src, _, _ in frames:
+        nearest = int(np.argmin(np.abs(truth.timestamps - t_src)))
+        close = abs(truth.timestamps[nearest] - t_src) <= 0.02
+        truth_of.append(truth.T_world_cam[nearest] if close else None)
     order = pass_order(len(frames), passes)
     target.mkdir(parents=True, exist_ok=True)
     for folder in ("rgb", "depth"):
@@ -72,13 +77,13 @@ def replay_sequence(source: Path, target: Path, passes: int, rate_hz: float = 30
     names = ("rgb.txt", "depth.txt", "associations.txt", "groundtruth.txt")
     lines: dict[str, list[str]] = {name: [] for name in names}
     for t, k in zip(stamps, order, strict=True):
-        t_src, rgb, depth = frames[k]
+        _, rgb, depth = frames[k]
         lines["rgb.txt"].append(f"{t:.6f} {rgb}")
         lines["depth.txt"].append(f"{t:.6f} {depth}")
         lines["associations.txt"].append(f"{t:.6f} {rgb} {t:.6f} {depth}")
-        nearest = int(np.argmin(np.abs(truth.timestamps - t_src)))
-        if abs(truth.timestamps[nearest] - t_src) <= 0.02:
-            lines["groundtruth.txt"].append(format_tum_row(t, truth.T_world_cam[nearest]))
+        pose = truth_of[k]
+        if pose is not None:
+            lines["groundtruth.txt"].append(format_tum_row(t, pose))
     header = f"# replay of {source}: {passes} passes, {len(order)} frames at {rate_hz} Hz\n"
     for name, rows in lines.items():
         (target / name).write_text(header + "\n".join(rows) + "\n", encoding="utf-8")
@@ -149,7 +154,9 @@ def run_long(
     config: str | Path | None = None,
     progress: bool = False,
 ) -> LongRunResult:
-    """SLAM (the config's backend) over a replayed folder, measured block by block."""
+    """SLAM (the config's backend) over a replayed folder, measured block by block.
+    `frames_per_pass`: the frames each turn adds (the source's frames - 1, `pass_order`);
+    the first pass has one more."""
     cfg = resolve_config(root, config)
     dataset = TumDataset(root, cfg.camera, cfg.dataset)
     if dataset.groundtruth is None:
@@ -177,7 +184,7 @@ def run_long(
             if result.keyframe:
                 b.keyframes += 1
                 keyframe_of.append(k)
-            if (k + 1) % frames_per_pass == 0:
+            if k > 0 and k % frames_per_pass == 0:  # the last frame of a pass
                 planes_per_pass.append(len(slam.map.planes))
             if (k + 1) % block == 0 or k + 1 == len(dataset):
                 b.map_planes = len(slam.map.planes)

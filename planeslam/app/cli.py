@@ -17,7 +17,8 @@ from pathlib import Path
 from planeslam import __version__
 from planeslam.app.config_command import (
     add_config_command,
-    add_override_option,
+    add_config_option,
+    add_config_options,
     camera_option,
     override_layers,
 )
@@ -26,7 +27,12 @@ from planeslam.app.download import add_download_command
 from planeslam.app.relocalise_command import add_relocalise_command
 from planeslam.app.signals import Terminated, stop_signals_interrupt
 from planeslam.app.synth_command import add_synth_command
-from planeslam.app.view_commands import add_mesh_command, add_view_command, add_viewer_options
+from planeslam.app.view_commands import (
+    add_mesh_command,
+    add_view_command,
+    add_viewer_options,
+    viewer_from_args,
+)
 from planeslam.core.errors import PlaneSlamError
 from planeslam.core.native_tuning import keep_freed_memory
 
@@ -127,14 +133,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _add_dataset_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
-    p.add_argument("--camera", default=None, help="intrinsics override 'fx,fy,cx,cy[,depth_scale]'")
-    add_override_option(p)
-
-
 def _add_run(sub: argparse._SubParsersAction) -> None:
-    from planeslam.slam import BACKENDS
+    from planeslam.backend.base import BackendKind  # planeslam.slam loads Open3D: 1.4 s
 
     p = _command(
         sub,
@@ -152,12 +152,12 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
         type=Path,
         help="TUM-layout folder (rgb/, depth/, rgb.txt, depth.txt), ROS 1 .bag or ROS 2 bag folder",
     )
-    _add_dataset_options(p)
+    add_config_options(p)
     add_topic_options(p)
     p.add_argument("--out", type=Path, default=None, help="output folder (default out/<name>)")
     p.add_argument(
         "--backend",
-        choices=BACKENDS,
+        choices=tuple(k.value for k in BackendKind),
         default=None,
         help="isam2: GTSAM factor graph (default); merge: the paper's frame-by-frame merging",
     )
@@ -179,7 +179,6 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from planeslam.app.runner import run_sequence
-    from planeslam.app.view_commands import viewer_from_args
 
     out = args.out if args.out is not None else Path("out") / args.dataset.name
     with viewer_from_args(args, args.dataset.name) as viewer:
@@ -216,7 +215,7 @@ def _add_frame(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("dataset", type=Path, help="TUM-layout folder, ROS 1 .bag or ROS 2 bag folder")
     p.add_argument("index", type=int, help="frame index (0-based, in association order)")
-    _add_dataset_options(p)
+    add_config_options(p)
     add_topic_options(p)
     p.add_argument("--out", type=Path, default=None, help="output folder (default out/frame)")
     p.set_defaults(func=_cmd_frame)
@@ -253,7 +252,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     f.add_argument("dataset", type=Path, nargs="?", default=None, help="dataset folder")
     f.add_argument("--frames", type=int, default=30, help="frames to time (default 30)")
-    _add_dataset_options(f)
+    add_config_options(f)
     f.add_argument(
         "--reference-frames",
         type=int,
@@ -306,7 +305,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     long.add_argument("source", help="dataset folder or synthetic scene name")
     long.add_argument("--passes", type=int, default=5, help="passes over the sequence (default 5)")
     long.add_argument("--block", type=int, default=1000, help="frames per block (default 1000)")
-    long.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
+    add_config_option(long)
     long.add_argument("--out", type=Path, default=Path("out/long"), help="output folder")
     long.set_defaults(func=_cmd_bench_long)
 

@@ -11,6 +11,23 @@ from planeslam.core.config import parse_override
 from planeslam.core.errors import ConfigError
 
 
+def add_config_option(p: argparse.ArgumentParser) -> None:
+    """--config PRESET_OR_YAML."""
+    p.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
+
+
+def add_camera_option(p: argparse.ArgumentParser) -> None:
+    """--camera 'fx,fy,cx,cy[,depth_scale]' (read by `camera_option`)."""
+    p.add_argument("--camera", default=None, help="intrinsics override 'fx,fy,cx,cy[,depth_scale]'")
+
+
+def add_config_options(p: argparse.ArgumentParser) -> None:
+    """--config, --camera and --set: the config options of the commands that read a dataset."""
+    add_config_option(p)
+    add_camera_option(p)
+    add_override_option(p)
+
+
 def add_override_option(p: argparse.ArgumentParser) -> None:
     """--set SECTION.KEY=VALUE, repeatable."""
     p.add_argument(
@@ -57,7 +74,7 @@ def add_config_command(sub: argparse._SubParsersAction) -> None:
     s.add_argument(
         "--dataset", type=Path, default=None, help="dataset folder (preset guess, camera.yaml)"
     )
-    s.add_argument("--camera", default=None, help="intrinsics override 'fx,fy,cx,cy[,depth_scale]'")
+    add_camera_option(s)
     add_override_option(s)
     s.set_defaults(func=_cmd_config_show)
 

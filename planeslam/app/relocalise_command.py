@@ -7,11 +7,17 @@ import argparse
 import json
 from pathlib import Path
 
+from planeslam.app.config_command import (
+    add_config_option,
+    add_override_option,
+    camera_option,
+    override_layers,
+)
+
 
 def add_relocalise_command(sub: argparse._SubParsersAction) -> None:
     """The `relocalise` sub-command."""
     from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
-    from planeslam.app.config_command import add_override_option
 
     p = _command(
         sub,
@@ -25,7 +31,7 @@ def add_relocalise_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("dataset", type=Path, help="TUM-layout folder with groundtruth.txt")
     p.add_argument("--map", type=Path, default=None, help="map.json to place frames in")
     p.add_argument("--every", type=int, default=10, help="every n-th frame (default 10)")
-    p.add_argument("--config", default=None, help="preset name or YAML file (default: guessed)")
+    add_config_option(p)
     p.add_argument("--camera", default=None, help="intrinsics override 'fx,fy,cx,cy[,scale]'")
     add_override_option(p)
     p.add_argument("--json", action="store_true", help="print one JSON object")
@@ -33,7 +39,6 @@ def add_relocalise_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_relocalise(args: argparse.Namespace) -> int:
-    from planeslam.app.config_command import camera_option, override_layers
     from planeslam.core.native_tuning import single_native_threads
     from planeslam.eval.relocalisation import relocalisation_benchmark
 

@@ -15,7 +15,7 @@ from planeslam.core.camera import CameraConfig
 from planeslam.core.config import from_mapping, read_yaml
 from planeslam.core.errors import DatasetFormatError, EvaluationError
 from planeslam.eval.report import FRAMES_JSONL, TRAJECTORY_TXT, read_frame_records
-from planeslam.eval.run_info import RunInfo, read_run_info
+from planeslam.eval.run_info import read_run_info
 from planeslam.io.config import DatasetConfig
 from planeslam.io.dataset import Frame, associate_timestamps
 from planeslam.io.sequence import RgbdDataset, open_dataset
@@ -46,13 +46,15 @@ class RunFolder:
     """A run folder with its dataset opened."""
 
     run_dir: Path
-    info: RunInfo
-    camera: CameraConfig
-    """The camera of the run's config.yaml."""
     dataset: RgbdDataset
     trajectory: Trajectory
     """Final poses (trajectory.txt)."""
     frames: list[RunFrame] = field(repr=False)
+
+    @property
+    def camera(self) -> CameraConfig:
+        """The camera of the run's config.yaml (a bag's camera_info applied)."""
+        return self.dataset.camera
 
     def config(self) -> PlaneSlamConfig:
         """The whole resolved config the run saved (config.yaml); ConfigError when it has
@@ -113,4 +115,4 @@ def open_run(run_dir: str | Path, dataset: str | Path | None = None) -> RunFolde
         )
         for i, r in enumerate(records)
     ]
-    return RunFolder(run_dir, info, data.camera, data, trajectory, frames)
+    return RunFolder(run_dir, data, trajectory, frames)

@@ -148,15 +148,18 @@ def run_sequence(
     out = Path(out_dir)
     if localize and map_path is None:
         raise ConfigError("localize needs a map to localise in (--map MAP.json)")
-    flags = {"backend": backend, "seed": seed, "every": every, "max_frames": max_frames}
-    flags["start_pose"] = start_pose
-    flag_layers = [
-        override_layer(
-            f"run.{key}", value, f"--{key.replace('_', '-')} {value}", f"--{key.replace('_', '-')}"
-        )
-        for key, value in flags.items()
-        if value is not None
-    ]
+    flags = {
+        "backend": backend,
+        "seed": seed,
+        "every": every,
+        "max_frames": max_frames,
+        "start_pose": start_pose,
+    }
+    flag_layers = []
+    for key, value in flags.items():
+        if value is not None:
+            flag = f"--{key.replace('_', '-')}"
+            flag_layers.append(override_layer(f"run.{key}", value, f"{flag} {value}", flag))
     resolved = explain_config(root, config, camera, [*overrides, *flag_layers])
     cfg = resolved.config
     if topics is not None:

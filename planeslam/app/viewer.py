@@ -138,20 +138,16 @@ class RunLogger:
     def set_frame(self, index: int) -> None:
         self.rec.set_time(TIMELINE, sequence=int(index))
 
-    def frame(
-        self,
-        result: FrameResult,
-        T_world_cam: np.ndarray,
-        rgb: np.ndarray | None,
-    ) -> None:
-        """One frame at its time: camera, image with the front end's result, scalars,
-        events, and the trajectory, keyframes and lost frames so far."""
+    def frame(self, result: FrameResult) -> None:
+        """One frame at its time: camera (its pose `result.T_world_cam`), image (`result.rgb`)
+        with the front end's result, scalars, events, and the trajectory, keyframes and lost
+        frames so far."""
         rr, rec = self.rr, self.rec
         self.set_frame(result.index)
-        T = np.asarray(T_world_cam, dtype=np.float64)
+        T = np.asarray(result.T_world_cam, dtype=np.float64)
         rec.log("world/camera", rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
-        if rgb is not None:
-            tinted = tint_planes(rgb, np.asarray(result.observation.segmentation.labels))
+        if result.rgb is not None:
+            tinted = tint_planes(result.rgb, np.asarray(result.observation.segmentation.labels))
             ok, jpeg = cv2.imencode(
                 ".jpg",
                 cv2.cvtColor(tinted, cv2.COLOR_RGB2BGR),
@@ -343,7 +339,7 @@ class RerunViewer:
 
     def frame(self, slam: SLAM, result: FrameResult) -> None:
         self._last_index = result.index
-        self.logger.frame(result, result.T_world_cam, result.rgb)
+        self.logger.frame(result)
         if result.keyframe:
             if self._keyframes % self.map_every == 0:
                 self.logger.map(slam.map)
@@ -485,7 +481,7 @@ def view_run(
                     stage_ms={str(s): float(v) for s, v in record.get("stage_ms", {}).items()},
                     rgb=frame.rgb,
                 )
-                logger.frame(result, f.T_world_cam, frame.rgb)
+                logger.frame(result)
                 if k == 0 and world_map is not None:
                     logger.map(world_map, sparse=True)
                     logger.final(run.trajectory)

@@ -22,6 +22,8 @@ MIN_MEDIAN_DEPTH_M = 0.05
 most of its pixels that close)."""
 RANGE_FACTOR = 10.0
 """A frame's median valid depth beyond RANGE_FACTOR x the camera's range is not in metres."""
+MAX_RANGE_M = 10.0
+"""Range of the RGB-D cameras [m] against which a dataset's depth image's unit is checked."""
 KNOWN_DEPTH_SCALES = (1000.0, 5000.0)
 """Depth PNG values per metre of common datasets (millimetres: 7-Scenes, RealSense,
 Azure Kinect; 1/5 mm: TUM RGB-D, ICL-NUIM)."""
@@ -50,7 +52,7 @@ def clean_depth(
         if depth.dtype.kind in "iu" and depth.ndim == 2:
             median = _median_valid(depth.astype(np.float32))
             if median is not None:
-                hint = f" (likely depth_scale {_likely_scales(median, 10.0, depth_scale)})"
+                hint = f" (likely depth_scale {_likely_scales(median, MAX_RANGE_M, depth_scale)})"
         raise DatasetFormatError(
             f"{where} is {depth.dtype}: depth must be float metres; divide raw sensor values by "
             f"the camera's depth_scale{hint}"

@@ -23,7 +23,7 @@ import numpy as np
 
 from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import AssociationError, DatasetFormatError, FrameReadError
-from planeslam.core.frame_checks import check_depth_units
+from planeslam.core.frame_checks import MAX_RANGE_M, check_depth_units
 from planeslam.io.config import DatasetConfig
 from planeslam.io.trajectory import Trajectory, read_tum
 from planeslam.io.tum_text import row_error, tum_rows
@@ -160,11 +160,11 @@ class FrameSequence:
         gt = self.groundtruth
         if gt is None or len(gt) == 0:
             return np.eye(4)
-        k = int(np.argmin(np.abs(gt.timestamps - timestamp)))
-        if abs(gt.timestamps[k] - timestamp) > self.config.max_time_difference_s:
+        T = gt.pose_near(timestamp, self.config.max_time_difference_s)
+        if T is None:
             log.info("no ground-truth pose near %.3f s: starting at the identity", timestamp)
             return np.eye(4)
-        return np.array(gt.T_world_cam[k], dtype=np.float64)
+        return T
 
     def __len__(self) -> int:
         return len(self.timestamps)
@@ -329,9 +329,6 @@ class TumDataset(FrameSequence):
         bgr = decode_image(path, cv2.IMREAD_COLOR)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
-
-MAX_RANGE_M = 10.0
-"""Range of the RGB-D cameras [m] against which a depth image's unit is checked."""
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _JPEG_SIGNATURE = b"\xff\xd8"

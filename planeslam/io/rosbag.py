@@ -35,11 +35,10 @@ from planeslam.core.errors import (
     FrameReadError,
     PlaneSlamError,
 )
-from planeslam.core.frame_checks import check_depth_units
+from planeslam.core.frame_checks import MAX_RANGE_M, check_depth_units, clean_depth
 from planeslam.core.geometry import pose_from_quat
 from planeslam.io.config import DatasetConfig
 from planeslam.io.dataset import (
-    MAX_RANGE_M,
     Frame,
     FrameSequence,
     Undistortion,
@@ -74,7 +73,8 @@ _COLOUR_TO_RGB = {
     "bgra8": cv2.COLOR_BGRA2RGB,
     "mono8": cv2.COLOR_GRAY2RGB,
 }
-_DEPTH_ENCODINGS = ("16uc1", "mono16", "32fc1")
+_COLOUR_FORMATS = {k: _PIXEL_FORMATS[k] for k in _COLOUR_TO_RGB}
+_DEPTH_FORMATS = {k: _PIXEL_FORMATS[k] for k in ("16uc1", "mono16", "32fc1")}
 _COMPRESSED = "sensor_msgs/msg/CompressedImage"
 
 
@@ -143,8 +143,7 @@ def rgb_from_message(msg: Any, msgtype: str, where: str) -> np.ndarray:
         if channels not in to_rgb:
             raise DatasetFormatError(f"{where}: compressed colour image has {channels} channels")
         return cv2.cvtColor(image, to_rgb[channels])
-    formats = {k: _PIXEL_FORMATS[k] for k in _COLOUR_TO_RGB}
-    image = _image_array(msg, where, formats)
+    image = _image_array(msg, where, _COLOUR_FORMATS)
     code = _COLOUR_TO_RGB[str(msg.encoding).lower()]
     return image if code is None else cv2.cvtColor(image, code)
 
@@ -159,14 +158,13 @@ def depth_from_message(msg: Any, msgtype: str, camera: CameraConfig, where: str)
                 f"{where}: compressed depth must be a 16-bit single-channel PNG"
             )
     else:
-        raw = _image_array(msg, where, {k: _PIXEL_FORMATS[k] for k in _DEPTH_ENCODINGS})
+        raw = _image_array(msg, where, _DEPTH_FORMATS)
     check_depth_size(where, raw, camera)
     if raw.dtype == np.uint16:
         depth_m = depth_m_from_raw(raw, camera)
         check_depth_units(depth_m, where, MAX_RANGE_M, camera.depth_scale)
         return depth_m
-    depth_m = raw.astype(np.float32)  # 32FC1: metres already
-    depth_m[~(np.isfinite(depth_m) & (depth_m > 0))] = 0.0
+    depth_m = clean_depth(raw.astype(np.float32), raw.shape, where)  # 32FC1: metres already
     check_depth_units(depth_m, where, MAX_RANGE_M)
     return depth_m
 

@@ -41,6 +41,16 @@ class Trajectory:
     def path_length_m(self) -> float:
         return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum())
 
+    def pose_near(self, timestamp: float, max_difference_s: float) -> np.ndarray | None:
+        """(4, 4) T_world_cam of the pose nearest to `timestamp` [s], or None when there is
+        none within `max_difference_s` [s]."""
+        if not len(self):
+            return None
+        k = int(np.argmin(np.abs(self.timestamps - timestamp)))
+        if abs(self.timestamps[k] - timestamp) > max_difference_s:
+            return None
+        return np.array(self.T_world_cam[k], dtype=np.float64)
+
 
 QUATERNION_NORM_TOLERANCE = 0.01
 """|norm - 1| allowed for a TUM row's quaternion (files round to 4 decimals or more);

@@ -44,10 +44,6 @@ class TsdfConfig:
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ConfigError(f"mesh {name} must be a positive number, got {value!r}")
 
-    @property
-    def sdf_trunc_m(self) -> float:
-        return self.voxel_m * self.sdf_trunc_voxels
-
 
 @dataclass(frozen=True)
 class PosedFrame:

@@ -63,6 +63,13 @@ class Map:
             object_config or ObjectConfig(),
             sensor=sensor or DepthNoiseConfig(),
         )
+        self._revision = 0
+
+    @property
+    def revision(self) -> int:
+        """Counts the changes to the map's planes, edges, corners, objects and up: views
+        derived from it stay valid while it is the same."""
+        return self._revision
 
     # ------------------------------------------------------------------ read access
 
@@ -154,6 +161,7 @@ class Map:
             raise MapError(f"up_world must be a finite non-zero (3,) vector, got {up_world!r}")
         self._contents.up = unit(up)
         self._contents.up_source = UpSource(UpOrigin.SET)
+        self._revision += 1
 
     def merge(
         self,
@@ -174,6 +182,7 @@ class Map:
         unknown indices / ids or pairing one plane twice.
         """
         merged = merge_frame(self._contents, observation, T_world_cam, plane_pairs, corner_pairs)
+        self._revision += 1
         if reaggregate:
             self.reaggregate()
         return merged
@@ -188,6 +197,7 @@ class Map:
     def reaggregate(self) -> list[MapObject]:
         """Recompute the objects (paper 4.2-4.3 on the merged map): corners sharing an edge
         form an object, classified by the pattern table and sized from the edges."""
+        self._revision += 1
         return reaggregation.reaggregate(self._contents, self.patterns)
 
     def update_geometry(
@@ -201,6 +211,7 @@ class Map:
         Outlines, statistics, edges and corners follow the new planes (see
         `geometry_update.update_geometry`). MapError for unknown ids or bad values."""
         update_geometry(self._contents, planes, corners)
+        self._revision += 1
         if reaggregate:
             self.reaggregate()
 

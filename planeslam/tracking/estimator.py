@@ -174,7 +174,6 @@ class PoseEstimate:
     """Per PointTerms, (M,) bool."""
     line_inliers: np.ndarray = field(repr=False)
     """(L,) bool."""
-    iterations: int = 0
 
     @property
     def total_information(self) -> np.ndarray:
@@ -284,7 +283,6 @@ def estimate_pose(
         sigma = settings.line_sigma_m
         systems.append((Primitive.LINES, lambda X: _line_system(X, lines, sigma)))
     k = settings.huber_k
-    it = 0
     for it in range(1, settings.iterations + 1):
         cut = np.inf if it <= settings.settle_iterations else settings.reject_k
         H, g = _normal_equations(T, systems, k, cut)[:2]
@@ -307,7 +305,6 @@ def estimate_pose(
         line_inliers=next(
             (mask for kind, mask in inliers if kind is Primitive.LINES), np.zeros(0, bool)
         ),
-        iterations=it,
     )
 
 

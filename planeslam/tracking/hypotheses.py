@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from planeslam.tracking.tracker import FrameView, MapView
+    from planeslam.tracking.views import FrameView, MapView
 
 _PERMUTATIONS_3 = np.array(list(itertools.permutations(range(3))))
 
@@ -181,27 +181,18 @@ def edge_hypotheses(
     )  # (P, 2, 3, 3)
     d_obs = frame.d[obs_rows]  # (P, 2)
     d_map = view.d[map_rows]  # (P, 2, 2)
+    solvable = np.abs(np.linalg.det(A)) > 1e-3  # (P, 2)
+    keep = ok & solvable
     hyps = []
     for k_end in range(2):  # which observed end (the ends' order along u is unknown)
+        u_p_rot = np.einsum("pi,pqi->pq", u, np.einsum("pqij,pj->pqi", R, p_obs[:, k_end]))
         for m_end in range(2):  # which map end it sits on
-            p_rot = np.einsum("pqij,pj->pqi", R, p_obs[:, k_end])
-            s = np.einsum("pi,pi->p", u, ends[:, m_end])[:, None] - np.einsum(
-                "pi,pqi->pq", u, p_rot
-            )
+            s = np.einsum("pi,pi->p", u, ends[:, m_end])[:, None] - u_p_rot
             b = np.concatenate([d_obs[:, None, :] - d_map, s[..., None]], axis=-1)  # (P, 2, 3)
-            solvable = np.abs(np.linalg.det(A)) > 1e-3
             t = np.zeros(b.shape)
             t[solvable] = np.linalg.solve(A[solvable], b[solvable][..., None])[..., 0]
-            keep = ok & solvable
             hyps.append(_poses(R[keep], t[keep]))
-    return np.concatenate(hyps) if hyps else np.zeros((0, 4, 4))
-
-
-def plane_support(
-    frame: FrameView, view: MapView, T: np.ndarray, max_angle_rad: float, max_offset_m: float
-) -> np.ndarray:
-    """(H, N) bool: observed plane n has a map plane within the gates under hypothesis h."""
-    return np.any(_plane_partners(frame, view, T, max_angle_rad, max_offset_m), axis=2)
+    return np.concatenate(hyps)
 
 
 def score_hypotheses(

@@ -30,7 +30,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
+from planeslam.core.geometry import transform_points
 from planeslam.tracking.config import PointConfig
+from planeslam.tracking.hypotheses import rotation_kabsch
 
 logger = logging.getLogger(__name__)
 
@@ -145,14 +147,6 @@ class PointMatches:
     def __len__(self) -> int:
         return len(self.observed)
 
-    def subset(self, keep: np.ndarray) -> PointMatches:
-        return PointMatches(
-            self.observed[keep],
-            self.points_world[keep],
-            self.covariances_world[keep],
-            self.keyframes[keep],
-        )
-
     @classmethod
     def empty(cls) -> PointMatches:
         return cls(
@@ -217,10 +211,6 @@ class KeypointMap:
     def __len__(self) -> int:
         return len(self._keyframes)
 
-    @property
-    def keyframe_indices(self) -> list[int]:
-        return list(self._keyframes)
-
     def add(
         self,
         index: int,
@@ -247,16 +237,6 @@ class KeypointMap:
         if kf is not None:
             kf.T_world_cam = np.array(T_world_cam)
 
-    def transform(self, T_new_old: np.ndarray, since: int) -> None:
-        """Move the keyframes from frame `since` on by T_new_old (4, 4) (a joined segment)."""
-        for kf in self._keyframes.values():
-            if kf.index >= since:
-                kf.T_world_cam = T_new_old @ kf.T_world_cam
-
-    def clear(self) -> None:
-        self._keyframes.clear()
-        self._stack = None
-
     def _keypoints(self, kf: _Keyframe) -> Keypoints | None:
         if kf.keypoints is None and kf.images is not None:
             kf.keypoints = self.detector.detect(*kf.images)
@@ -282,12 +262,12 @@ class KeypointMap:
             pairs = match_descriptors(keypoints.descriptors, ref.descriptors, ratio)
             if not len(pairs):
                 continue
-            R, t = kf.T_world_cam[:3, :3], kf.T_world_cam[:3, 3]
+            R = kf.T_world_cam[:3, :3]
             rows = pairs[:, 1]
             parts.append(
                 PointMatches(
                     observed=pairs[:, 0],
-                    points_world=ref.points_cam[rows] @ R.T + t,
+                    points_world=transform_points(kf.T_world_cam, ref.points_cam[rows]),
                     covariances_world=np.einsum("ij,njk,lk->nil", R, ref.covariances[rows], R),
                     keyframes=np.full(len(pairs), index, np.int64),
                 )
@@ -307,8 +287,8 @@ class KeypointMap:
         rows = [m.trainIdx for m in matches if m.distance <= self.detector.config.vote_max_distance]
         if not rows:
             return []
-        votes = np.bincount(np.searchsorted(np.unique(owner), owner[rows]))
         keyframes = np.unique(owner)
+        votes = np.bincount(np.searchsorted(keyframes, owner[rows]))
         order = np.argsort(-votes, kind="stable")[:count]
         return [int(keyframes[k]) for k in order if votes[k] > 0]
 
@@ -328,11 +308,7 @@ class KeypointMap:
 def _kabsch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Batched rigid fit: (S, k, 3) point sets -> R (S, 3, 3), t (S, 3) with dst = R src + t."""
     c_src, c_dst = src.mean(axis=1), dst.mean(axis=1)
-    H = np.einsum("ski,skj->sij", src - c_src[:, None], dst - c_dst[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    D = np.ones((len(H), 3))
-    D[:, 2] = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    R = np.swapaxes(Vt, 1, 2) @ (D[:, :, None] * np.swapaxes(U, 1, 2))
+    R = rotation_kabsch(src - c_src[:, None], dst - c_dst[:, None])
     return R, c_dst - np.einsum("sij,sj->si", R, c_src)
 
 
@@ -353,7 +329,7 @@ class PointPose:
 def point_residuals(T_world_cam: np.ndarray, p_cam: np.ndarray, p_world: np.ndarray) -> np.ndarray:
     """(M,) distances [m] between (M, 3) camera points moved by T_world_cam and (M, 3)
     world points."""
-    return np.linalg.norm(p_cam @ T_world_cam[:3, :3].T + T_world_cam[:3, 3] - p_world, axis=1)
+    return np.linalg.norm(transform_points(T_world_cam, p_cam) - p_world, axis=1)
 
 
 def inlier_threshold(p_cam: np.ndarray, cfg: PointConfig, sensor: DepthNoiseConfig) -> np.ndarray:

@@ -35,8 +35,6 @@ class Candidates:
 
     poses: np.ndarray
     """(K, 4, 4) T_world_cam."""
-    scores: np.ndarray
-    """(K,) support (`hypotheses.score_hypotheses`)."""
     matches: PointMatches
     """Matches of the frame's keypoints with the best-voted keyframes (world frame)."""
 
@@ -95,7 +93,7 @@ def relocalisation_candidates(
             if found is not None:
                 poses = np.concatenate([found.T_world_cam[None], poses])
     if not len(poses):
-        return Candidates(np.zeros((0, 4, 4)), np.zeros(0), matches)
+        return Candidates(np.zeros((0, 4, 4)), matches)
     scores = np.zeros(len(poses))
     if not view.empty:
         scores = hypotheses.score_hypotheses(
@@ -113,7 +111,7 @@ def relocalisation_candidates(
     distance = np.linalg.norm(poses[:, :3, 3] - T_pred[:3, 3], axis=1)
     order = np.lexsort((distance, -np.round(scores, 6)))
     order = _distinct(poses, order, cfg.relocalise_candidates)
-    return Candidates(poses[order], scores[order], matches)
+    return Candidates(poses[order], matches)
 
 
 def _agreeing(

@@ -45,7 +45,7 @@ import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import GeometryError
-from planeslam.core.geometry import invert_pose
+from planeslam.core.geometry import invert_pose, transform_points
 from planeslam.core.types import TrackingPath
 from planeslam.tracking.association import (
     Association,
@@ -139,13 +139,20 @@ class JointSolve:
 
     T: np.ndarray
     """(4, 4) T_world_cam, the estimate's."""
-    estimate: PoseEstimate
     association: Association
     """Plane and corner correspondences kept (within the gates at the solution)."""
     constraints: PoseConstraints
-    point_inliers: int
-    score: float
-    """Support: inlier planes (1 each), corners (2), point matches (1/10)."""
+    """Its `terms` count the inlier planes, corners, points and lines."""
+
+    @property
+    def point_inliers(self) -> int:
+        return self.constraints.terms["points"]
+
+    @property
+    def score(self) -> float:
+        """Support: inlier planes (1 each), corners (2), point matches (1/10)."""
+        terms = self.constraints.terms
+        return terms["planes"] + 2.0 * terms["corners"] + terms["points"] / 10.0
 
     @property
     def path(self) -> TrackingPath:
@@ -157,10 +164,15 @@ class JointSolve:
         return TrackingPath.PLANES_POINTS
 
 
+def _planes_within_gates(reg: RegistrationResult, cfg: TrackingConfig) -> np.ndarray:
+    """(N,) bool: plane correspondences of `reg` within the residual gates."""
+    return (reg.plane_angle_residual_rad <= np.radians(cfg.max_residual_angle_deg)) & (
+        np.abs(reg.plane_offset_residual_m) <= cfg.max_residual_offset_m
+    )
+
+
 def _trusted(reg: RegistrationResult, cfg: TrackingConfig) -> bool:
-    angle_ok = np.all(reg.plane_angle_residual_rad <= np.radians(cfg.max_residual_angle_deg))
-    offset_ok = np.all(np.abs(reg.plane_offset_residual_m) <= cfg.max_residual_offset_m)
-    return bool(angle_ok and offset_ok)
+    return bool(np.all(_planes_within_gates(reg, cfg)))
 
 
 def _fill_translation(reg: RegistrationResult, T_icp: np.ndarray) -> np.ndarray:
@@ -239,8 +251,6 @@ class Tracker:
         self._T_world_previous: np.ndarray | None = None
         self._previous_stamp = -np.inf
         """Timestamp of the last tracked frame [s]."""
-        self.lost_streak = 0
-        """Frames lost in a row up to now."""
         self.prediction_valid = True
         """Whether the previous frame was tracked, so the prediction means something (false
         after a loss, and for the first frame in a loaded map: see `expect_jump`)."""
@@ -350,14 +360,8 @@ class Tracker:
     ) -> Association | None:
         """`assoc` without the correspondences beyond the residual gates, or None when all
         are within them. Corners go with any of their planes."""
-        cfg = self.config
-        ok = (reg.plane_angle_residual_rad <= np.radians(cfg.max_residual_angle_deg)) & (
-            np.abs(reg.plane_offset_residual_m) <= cfg.max_residual_offset_m
-        )
-        corner_ok = reg.point_residual_m <= cfg.max_corner_distance_m
-        if ok.all() and corner_ok.all():
-            return None
-        return _keep(frame, assoc, ok, corner_ok)
+        corner_ok = reg.point_residual_m <= self.config.max_corner_distance_m
+        return _keep(frame, assoc, _planes_within_gates(reg, self.config), corner_ok)
 
     # -------------------------------------------------------------------------- joint
 
@@ -369,11 +373,11 @@ class Tracker:
         T: np.ndarray,
         keypoints: Keypoints | None,
         matches: PointMatches,
-    ) -> tuple[PlaneTerms, list[PointTerms], LineTerms, np.ndarray]:
+    ) -> tuple[PlaneTerms, list[PointTerms], LineTerms]:
         """The estimator's terms under T: associated planes and corners, the point matches
         within twice their inlier threshold, and the real ends of edges whose two planes
         are associated with the two planes of a map edge (the nearer map end, within
-        `line_gate_m` along the edge). Also returns the point matches' mask."""
+        `line_gate_m` along the edge)."""
         cfg = self.config
         obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
         cov = (
@@ -390,7 +394,6 @@ class Tracker:
             Primitive.CORNERS,
         )
         terms = [corners]
-        use = np.zeros(len(matches), dtype=bool)
         if keypoints is not None and len(matches):
             p_cam = keypoints.points_cam[matches.observed]
             gate = 2.0 * inlier_threshold(p_cam, cfg.points, self.sensor)
@@ -409,7 +412,23 @@ class Tracker:
                     matches.covariances_world[use] + shared,
                 )
             )
-        return planes, terms, self._line_terms(frame, view, assoc, T), use
+        return planes, terms, self._line_terms(frame, view, assoc, T)
+
+    def _estimate(
+        self,
+        frame: FrameView,
+        view: MapView,
+        assoc: Association,
+        T: np.ndarray,
+        keypoints: Keypoints | None,
+        matches: PointMatches,
+    ) -> PoseEstimate | None:
+        """`estimate_pose` from T (4, 4) over the `_terms` under T; None without plane or
+        point terms."""
+        planes, points, lines = self._terms(frame, view, assoc, T, keypoints, matches)
+        if not len(planes) and not sum(len(p) for p in points):
+            return None
+        return estimate_pose(T, planes, points, lines, self.settings)
 
     def _line_terms(
         self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
@@ -459,23 +478,20 @@ class Tracker:
         cfg = self.config
         T = T_start
         assoc = Association([], [])
-        estimate = None
-        use = np.zeros(len(matches), dtype=bool)
+        estimate: PoseEstimate | None = None
         for _ in range(2):
             assoc = self._associate(frame, view, T) if len(view.plane_ids) else assoc
-            planes, points, lines, use = self._terms(frame, view, assoc, T, keypoints, matches)
-            if not len(planes) and not sum(len(p) for p in points):
+            estimate = self._estimate(frame, view, assoc, T, keypoints, matches)
+            if estimate is None:
                 return None
-            estimate = estimate_pose(T, planes, points, lines, self.settings)
             T = estimate.T_world_cam
         assert estimate is not None
         kept = self._joint_inliers(frame, view, assoc, T)
         if kept is not None:
             assoc = kept
-            planes, points, lines, use = self._terms(frame, view, assoc, T, keypoints, matches)
-            if not len(planes) and not sum(len(p) for p in points):
+            estimate = self._estimate(frame, view, assoc, T, keypoints, matches)
+            if estimate is None:
                 return None
-            estimate = estimate_pose(T, planes, points, lines, self.settings)
         if not fully_constrained(estimate, self.thresholds):
             return None
         point_inliers = (
@@ -490,12 +506,10 @@ class Tracker:
             "lines": int(np.count_nonzero(estimate.line_inliers)),
         }
         found = constraints(estimate, self.thresholds, terms)
-        T = estimate.T_world_cam
         if not found.planes_full and Primitive.POINTS in found.filled_by:
             if point_inliers < cfg.points.min_inliers:
                 return None
-        score = terms["planes"] + 2.0 * terms["corners"] + point_inliers / 10.0
-        return JointSolve(T, estimate, assoc, found, point_inliers, score)
+        return JointSolve(estimate.T_world_cam, assoc, found)
 
     def _agreeing(self, T: np.ndarray, keypoints: Keypoints | None, matches: PointMatches) -> int:
         """Point matches within their inlier threshold under T (4, 4)."""
@@ -520,12 +534,10 @@ class Tracker:
             np.abs(d_world - view.d[mp]) <= cfg.max_residual_offset_m
         )
         co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
-        moved = frame.corner_points[co] @ T[:3, :3].T + T[:3, 3]
+        moved = transform_points(T, frame.corner_points[co])
         corner_ok = (
             np.linalg.norm(moved - view.corner_points[cm], axis=1) <= cfg.max_corner_distance_m
         )
-        if ok.all() and corner_ok.all():
-            return None
         return _keep(frame, assoc, ok, corner_ok)
 
     def _best_joint(
@@ -664,7 +676,7 @@ class Tracker:
         assert self._T_world_previous is not None, "set with the previous cloud"
         cam, cfg = self.camera, self.config
         T = invert_pose(self._T_world_previous) @ T_world_cam
-        p = self._points(cloud) @ T[:3, :3].T + T[:3, 3]
+        p = transform_points(T, self._points(cloud))
         p = p[p[:, 2] > 0.1]
         u = np.rint(cam.fx * p[:, 0] / p[:, 2] + cam.cx).astype(np.int64)
         v = np.rint(cam.fy * p[:, 1] / p[:, 2] + cam.cy).astype(np.int64)
@@ -714,7 +726,6 @@ class Tracker:
             points = _LazyKeypoints(lambda: detector.detect(image, xyz))
         gap = observation.timestamp - self._previous_stamp
         result = self._track(frame, view, T_pred, cloud, rgbd, points, gap)
-        self.lost_streak = self.lost_streak + 1 if result.lost else 0
         self.prediction_valid = not result.lost
         if not result.lost:
             self._previous_cloud, self._previous_rgbd = cloud, rgbd
@@ -739,43 +750,43 @@ class Tracker:
             return TrackResult(T_pred, TrackingPath.FIRST, "empty map: the frame starts it")
         reasons: list[str] = []
         solve = self.register(frame, view, T_pred) if not view.empty else None
+        trusted = solve if solve is not None and _trusted(solve.registration, cfg) else None
         if (
-            solve is not None
-            and solve.registration.status is RegistrationStatus.OK
-            and _trusted(solve.registration, cfg)
+            trusted is not None
+            and trusted.registration.status is RegistrationStatus.OK
             and self.prediction_valid  # after a loss the prediction is no evidence
             and (
                 frame_gap_s <= cfg.fast_max_gap_s
-                or self._near(solve.T, T_pred)
-                or self._points_agree(solve.T, points)
+                or self._near(trusted.T, T_pred)
+                or self._points_agree(trusted.T, points)
             )
         ):
             terms = {
-                "planes": len(solve.association.planes),
-                "corners": len(solve.association.corners),
+                "planes": len(trusted.association.planes),
+                "corners": len(trusted.association.corners),
             }
             return self._result(
                 frame,
                 view,
-                solve.T,
-                solve.association,
+                trusted.T,
+                trusted.association,
                 TrackingPath.PLANES,
                 "",
-                _plane_constraints(solve.registration, terms),
+                _plane_constraints(trusted.registration, terms),
                 points.value,
             )
         reasons.append(
             "no plane matched the map under the prediction"
             if solve is None
             else f"plane pose {solve.registration.status.value}"
-            + ("" if _trusted(solve.registration, cfg) else " with residuals beyond the gates")
+            + ("" if trusted is not None else " with residuals beyond the gates")
         )
         # One estimate over every primitive, from every start that needs no plane prior.
         keypoints = points.get()
         matches = PointMatches.empty()
         starts = []
-        if solve is not None and _trusted(solve.registration, cfg):
-            starts.append(solve.T)
+        if trusted is not None:
+            starts.append(trusted.T)
         if keypoints is not None and self.keypoint_map is not None and len(keypoints):
             recent = self.keypoint_map.recent(cfg.points.recent_keyframes)
             matches = self.keypoint_map.matches(keypoints, recent)
@@ -809,7 +820,7 @@ class Tracker:
         if jumped:
             reasons.append("the frame's keypoints contradict the recent keyframes (a jump?)")
         elif self.prediction_valid:
-            dense = self._dense(frame, view, T_pred, solve, cloud, rgbd, reasons, keypoints)
+            dense = self._dense(frame, view, T_pred, trusted, cloud, rgbd, reasons, keypoints)
             if dense is not None:
                 return dense
         reasons.append("no fallback registered the frame")
@@ -824,22 +835,20 @@ class Tracker:
         frame: FrameView,
         view: MapView,
         T_pred: np.ndarray,
-        solve: PoseSolve | None,
+        planes: PoseSolve | None,
         cloud: np.ndarray | None,
         rgbd,
         reasons: list[str],
         keypoints: Keypoints | None,
     ) -> TrackResult | None:
         """Last resort, right after a tracked frame only (across a loss the prediction is
-        stale): RGB-D odometry, then ICP, against the previous frame from the plane pose or
-        the prediction, taken when the result overlaps the previous frame's depth. A plane
-        pose that fixed rotation keeps it and its translation directions."""
-        cfg = self.config
+        stale): RGB-D odometry, then ICP, against the previous frame from the trusted plane
+        pose `planes` or the prediction, taken when the result overlaps the previous frame's
+        depth. A plane pose that fixed rotation keeps it and its translation directions."""
         methods: list[tuple[TrackingPath, Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(TrackingPath.ODOMETRY, Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
             methods.append((TrackingPath.ICP, Primitive.ICP, lambda T0: self._icp(cloud, T0)))
-        planes = solve if solve is not None and _trusted(solve.registration, cfg) else None
         for path, kind, method in methods:
             T = method(T_pred if planes is None else planes.T)
             if T is None:
@@ -944,8 +953,11 @@ def _same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
 
 def _keep(
     frame: FrameView, assoc: Association, ok: np.ndarray, corner_ok: np.ndarray
-) -> Association:
-    """`assoc` with the planes `ok` (and the corners `corner_ok` whose planes all stay)."""
+) -> Association | None:
+    """`assoc` with the planes `ok` (and the corners `corner_ok` whose planes all stay), or
+    None when all are ok."""
+    if ok.all() and corner_ok.all():
+        return None
     planes = [p for p, keep in zip(assoc.planes, ok, strict=True) if keep]
     kept_obs = {i for i, _ in planes}
     corners = [
