@@ -166,7 +166,8 @@ class SLAM:
         self.tracker = Tracker(
             config.tracking, odometry, config.camera, config.sensor, config.run.seed
         )
-        self.map = map if map is not None else Map(config.map, config.objects, sensor=config.sensor)
+        self.map = map if map is not None else Map(config.map, config.objects)
+        self.map.sensor = config.sensor  # also a given map's: it merges this run's frames
         self.localize = localize
         """Track in `map` without changing it."""
         self._in_given_map = map is not None

@@ -355,6 +355,31 @@ def test_live_run_recorded_to_rrd_reads_back(box_room: Path, tmp_path: Path) -> 
     assert [len(s[0]) for s in strips] == list(range(1, FRAMES + 1))
 
 
+def test_a_growing_trajectory_sends_each_point_once_per_chunk(tmp_path: Path) -> None:
+    rr = pytest.importorskip("rerun")
+    from planeslam.app.viewer import TIMELINE, GrowingPoints
+
+    rrd = tmp_path / "strip.rrd"
+    rec = rr.RecordingStream("test")
+    rec.save(str(rrd))
+    strip = GrowingPoints("strip", lambda p: rr.LineStrips3D([p]), chunk=4)
+    points = np.arange(30, dtype=float).reshape(10, 3)
+    for k, p in enumerate(points):
+        rec.set_time(TIMELINE, sequence=k)
+        strip.add(rec, p[None])
+    rec.flush()
+    del rec
+    entities = read_recording(rrd)
+    current = column(entities["/strip"], "LineStrips3D:strips")
+    assert len(current) == 10 and max(len(s[0]) for s in current) <= 4
+    past = [column(entities[f"/strip/past/{k}"], "LineStrips3D:strips") for k in range(2)]
+    assert all(len(rows_) == 1 for rows_ in past)  # each full chunk logged once
+    drawn = [np.array(c[0][0]) for c in past] + [np.array(current[-1][0])]
+    # the chunks share their end points and together are the whole strip
+    joined = np.concatenate([drawn[0]] + [d[1:] for d in drawn[1:]])
+    np.testing.assert_array_equal(joined, points)
+
+
 def test_view_replays_a_finished_run(run_dir: Path, tmp_path: Path) -> None:
     pytest.importorskip("rerun")
     rrd = tmp_path / "replay.rrd"

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -10,7 +11,8 @@ import numpy as np
 import pytest
 
 from planeslam.app.runner import run_sequence
-from planeslam.config import resolve_config
+from planeslam.config import PlaneSlamConfig, resolve_config
+from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.dataset import TumDataset
@@ -171,3 +173,15 @@ def test_run_on_a_short_real_clip(clip: str, tmp_path: Path) -> None:
     assert static > 0.03  # the clips do move: the check below has teeth
     assert ate < 0.025 and ate < 0.5 * static, (ate, static)
     assert "RPE not computed" in result.text()
+
+
+def test_a_given_map_merges_with_the_runs_sensor_model(tmp_path: Path) -> None:
+    """map.json does not keep the depth noise model: the run that extends a loaded map
+    gives it its own (the consolidation gate of the frames it merges)."""
+    Map().save(tmp_path / "map.json")
+    sensor = DepthNoiseConfig(sigma_a_m=0.004, sigma_b_per_m=0.006)
+    cfg = dataclasses.replace(PlaneSlamConfig(), sensor=sensor)
+    loaded = Map.load(tmp_path / "map.json")
+    assert loaded.sensor == DepthNoiseConfig()
+    with SLAM(cfg, "merge", map=loaded) as slam:
+        assert slam.map is loaded and slam.map.sensor == sensor

@@ -21,12 +21,12 @@ from typing import Any
 
 import numpy as np
 
+from planeslam.app.dataset_options import open_configured
 from planeslam.config import ConfigLayer, PlaneSlamConfig, resolve_config
 from planeslam.core.camera import PixelRays
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.frontend.cloud import organized_cloud
 from planeslam.frontend.pipeline import FrontEnd
-from planeslam.io.sequence import open_dataset
 
 log = logging.getLogger(__name__)
 
@@ -377,8 +377,7 @@ def bench_frontend(
     cache = None if cache_dir is None else Path(cache_dir)
     folder = Path(dataset_dir) if dataset_dir is not None else synthetic_dataset(cache)
     cfg = resolve_config(folder, config, camera, overrides)
-    dataset = open_dataset(folder, cfg.camera, cfg.dataset)
-    cfg = dataclasses.replace(cfg, camera=dataset.camera)  # a bag's camera_info applied
+    dataset, cfg = open_configured(folder, cfg)
     if len(dataset) == 0:
         raise DatasetFormatError(f"{folder}: no frames")
     distinct = min(frames, len(dataset))

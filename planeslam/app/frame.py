@@ -4,20 +4,18 @@ config.yaml."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from planeslam.app.dataset_options import TopicOverrides
+from planeslam.app.dataset_options import TopicOverrides, open_configured
 from planeslam.app.overlay import draw_overlay, format_size, write_png
 from planeslam.config import ConfigLayer, resolve_config
 from planeslam.core.config import save_yaml
 from planeslam.core.errors import DatasetFormatError
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
-from planeslam.io.sequence import open_dataset
 
 log = logging.getLogger(__name__)
 
@@ -81,8 +79,7 @@ def process_frame(
     cfg = resolve_config(dataset_dir, config, camera, overrides)
     if topics is not None:
         cfg = topics.apply(cfg)
-    dataset = open_dataset(dataset_dir, cfg.camera, cfg.dataset)
-    cfg = dataclasses.replace(cfg, camera=dataset.camera)  # a bag's camera_info applied
+    dataset, cfg = open_configured(dataset_dir, cfg)
     if not isinstance(index, int) or isinstance(index, bool) or not 0 <= index < len(dataset):
         raise DatasetFormatError(
             f"{dataset_dir}: frame index {index!r} out of range; valid 0..{len(dataset) - 1} "

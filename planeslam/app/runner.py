@@ -22,7 +22,6 @@ truth or truth.json, a trajectory too short to align) is a warning in `RunResult
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 from collections.abc import Sequence
@@ -30,7 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from planeslam.app.dataset_options import TopicOverrides
+from planeslam.app.dataset_options import TopicOverrides, open_configured
 from planeslam.app.progress import progress_bar
 from planeslam.app.signals import deferred_interrupts
 from planeslam.config import PlaneSlamConfig, explain_config
@@ -40,7 +39,7 @@ from planeslam.core.safe_files import LineWriter, atomic_output, write_text_atom
 from planeslam.eval.metrics import RunMetrics, slam_run_metrics, write_metrics
 from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_report
 from planeslam.eval.run_info import RunInfo, write_run_info
-from planeslam.io.sequence import RgbdDataset, open_dataset
+from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import TumWriter, write_tum
 from planeslam.mapping.world_map import Map
 from planeslam.slam import (
@@ -166,8 +165,7 @@ def run_sequence(
         cfg = topics.apply(cfg)
     run = cfg.run
     backend = run.backend
-    dataset = open_dataset(root, cfg.camera, cfg.dataset)
-    cfg = dataclasses.replace(cfg, camera=dataset.camera)  # a bag's camera_info applied
+    dataset, cfg = open_configured(root, cfg)
     indices = frame_indices(len(dataset), run.max_frames, run.every)
     if not indices:
         raise ConfigError(f"{root}: no frames to process")

@@ -14,6 +14,9 @@ Everything is logged on one timeline, `frame` (the frame's position in the run),
     world/trajectory/final        LineStrips3D: the optimised trajectory (at the end)
     world/trajectory/groundtruth  LineStrips3D: the ground truth up to the frame, when known
     world/keyframes, world/lost   Points3D: keyframe and lost-frame camera positions so far
+                                  (these four hold their last CHUNK points; each earlier
+                                  chunk is logged once, when full, under <path>/past/<k>,
+                                  so a frame sends O(1) data, not the whole run so far)
     world/map/planes              Mesh3D: plane polygons coloured by object
     world/map/outlines            LineStrips3D: plane outlines, same colours
     world/map/edges               LineStrips3D: real intersections (convex orange, concave cyan)
@@ -86,6 +89,31 @@ FLUSH_TIMEOUT_S = 20.0
 """How long closing a recording waits for a viewer to take the rest of the data [s]."""
 GT_MARGIN_S = 0.05
 """Ground truth this close before the first frame and after the current one is drawn [s]."""
+CHUNK = 256
+"""Points of a growing trajectory or point set re-sent per frame (see `GrowingPoints`)."""
+
+
+class GrowingPoints:
+    """A point set or line strip that grows frame by frame, logged without re-sending the
+    past: `path` holds the last chunk (at most `chunk` points), and every full chunk is
+    logged once under `path/past/<k>` (a strip's chunks share their end points)."""
+
+    def __init__(self, path: str, draw: Any, chunk: int = CHUNK) -> None:
+        """`draw`: (N, 3) array -> the rerun archetype to log."""
+        self.path, self.draw, self.chunk = path, draw, chunk
+        self._points: list[np.ndarray] = []
+        self._done = 0
+
+    def add(self, rec: Any, points: np.ndarray) -> None:
+        """Append (K, 3) points [m] (K may be 0) and log at the recording's current time."""
+        self._points.extend(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+        while len(self._points) > self.chunk:
+            rec.log(
+                f"{self.path}/past/{self._done}", self.draw(np.array(self._points[: self.chunk]))
+            )
+            self._done += 1
+            self._points = self._points[self.chunk - 1 :]
+        rec.log(self.path, self.draw(np.array(self._points).reshape(-1, 3)))
 
 
 def _rerun() -> Any:
@@ -112,12 +140,25 @@ class RunLogger:
     def __init__(self, rec: rr.RecordingStream) -> None:
         self.rr = _rerun()
         self.rec = rec
-        self._estimate: list[np.ndarray] = []
-        self._keyframes: list[np.ndarray] = []
-        self._lost: list[np.ndarray] = []
+        rr = self.rr
+        self._estimate = GrowingPoints(
+            "world/trajectory/estimate",
+            lambda p: rr.LineStrips3D([p], colors=[TRAJECTORY_RGB], radii=0.004),
+        )
+        self._groundtruth_strip = GrowingPoints(
+            "world/trajectory/groundtruth",
+            lambda p: rr.LineStrips3D([p], colors=[GROUNDTRUTH_RGB], radii=0.004),
+        )
+        self._keyframes = GrowingPoints(
+            "world/keyframes", lambda p: rr.Points3D(p, colors=[KEYFRAME_RGB], radii=0.01)
+        )
+        self._lost = GrowingPoints(
+            "world/lost", lambda p: rr.Points3D(p, colors=[LOST_RGB], radii=0.02)
+        )
+        self._groundtruth_until = -np.inf
+        """Time stamp [s] up to which the ground truth is logged."""
         self._up_logged = False
         self._groundtruth: Trajectory | None = None
-        self._first_stamp: float | None = None
 
     def setup(self, camera: CameraConfig, groundtruth: Trajectory | None) -> None:
         """The camera model (static) and the ground truth to draw frame by frame."""
@@ -159,33 +200,21 @@ class RunLogger:
                     rr.EncodedImage(contents=jpeg.tobytes(), media_type="image/jpeg"),
                 )
         self._log_observation(result.observation)
-        position = T[:3, 3].copy()
-        self._estimate.append(position)
-        rec.log(
-            "world/trajectory/estimate",
-            rr.LineStrips3D([np.array(self._estimate)], colors=[TRAJECTORY_RGB], radii=0.004),
-        )
+        position = T[None, :3, 3]
+        self._estimate.add(rec, position)
         if self._groundtruth is not None:  # over the same time span as the estimate
-            if self._first_stamp is None:
-                self._first_stamp = result.timestamp
+            if self._groundtruth_until == -np.inf:  # the first frame
+                self._groundtruth_until = np.nextafter(result.timestamp - GT_MARGIN_S, -np.inf)
             t = self._groundtruth.timestamps
-            span = (t >= self._first_stamp - GT_MARGIN_S) & (t <= result.timestamp + GT_MARGIN_S)
-            rec.log(
-                "world/trajectory/groundtruth",
-                rr.LineStrips3D(
-                    [self._groundtruth.positions[span]], colors=[GROUNDTRUTH_RGB], radii=0.004
-                ),
-            )
+            until = result.timestamp + GT_MARGIN_S
+            span = (t > self._groundtruth_until) & (t <= until)
+            self._groundtruth_until = max(self._groundtruth_until, until)
+            self._groundtruth_strip.add(rec, self._groundtruth.positions[span])
         if result.keyframe:
-            self._keyframes.append(position)
-            rec.log(
-                "world/keyframes",
-                rr.Points3D(np.array(self._keyframes), colors=[KEYFRAME_RGB], radii=0.01),
-            )
+            self._keyframes.add(rec, position)
             rec.log("log", rr.TextLog(f"frame {result.index}: keyframe", level="INFO"))
         if result.lost:
-            self._lost.append(position)
-            rec.log("world/lost", rr.Points3D(np.array(self._lost), colors=[LOST_RGB], radii=0.02))
+            self._lost.add(rec, position)
             rec.log("log", rr.TextLog(f"frame {result.index} lost: {result.reason}", level="WARN"))
         elif result.path not in (TrackingPath.FIRST, TrackingPath.PLANES):  # a fallback
             text = f"frame {result.index}: {result.path.value}: {result.reason}"

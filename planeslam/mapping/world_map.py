@@ -102,6 +102,16 @@ class Map:
         return list(self._contents.objects)
 
     @property
+    def sensor(self) -> DepthNoiseConfig:
+        """Depth noise of the frames being merged (consolidation's gate). Not saved: a
+        loaded map takes the one of the run that extends it."""
+        return self._contents.sensor
+
+    @sensor.setter
+    def sensor(self, sensor: DepthNoiseConfig) -> None:
+        self._contents.sensor = sensor
+
+    @property
     def frames_merged(self) -> int:
         """Frames merged so far (also before a save/load)."""
         return self._contents.frames_merged
