@@ -25,10 +25,11 @@ from test_landmarks import (  # noqa: E402
 )
 
 from planeslam.backend.config import BackendConfig
-from planeslam.backend.isam2 import Isam2Backend
+from planeslam.backend.isam2 import Isam2Backend, informative_planes
 from planeslam.backend.keyframes import is_keyframe
 from planeslam.core.errors import ConfigError  # noqa: E402
 from planeslam.core.geometry import angle_between  # noqa: E402
+from planeslam.core.types import PlaneMeasurement  # noqa: E402
 from planeslam.factors import LandmarkConfig, LandmarkKeys, point_on_plane_factor  # noqa: E402
 from planeslam.sim.scenes import box_room_circle, room_boxes_loop  # noqa: E402
 
@@ -123,6 +124,44 @@ def test_isam2_beats_odometry_below_1cm(room_loop, robust_kernel):
     for k, p in corners.items():
         assert np.linalg.norm(p - scene.corners[k].point) < 0.02
     assert len(backend.update_ms) == len(T_true) and backend.failures == 0
+
+
+def test_a_plane_budget_takes_the_planes_that_fix_the_pose() -> None:
+    """A floor and two walls fix all six directions; a second, more certain horizontal
+    surface (a table) adds nothing the floor does not, so it comes last."""
+
+    def plane(k: int, normal: list[float], sigma: float) -> PlaneMeasurement:
+        return PlaneMeasurement(k, np.array(normal), 1.0, np.diag([sigma**2] * 3))
+
+    floor = plane(0, [0.0, -1.0, 0.0], 0.002)
+    table = plane(1, [0.0, -1.0, 0.0], 0.001)
+    wall_a, wall_b = plane(2, [1.0, 0.0, 0.0], 0.004), plane(3, [0.0, 0.0, -1.0], 0.004)
+    chosen = informative_planes([floor, table, wall_a, wall_b], 3)
+    assert sorted(chosen) == [1, 2, 3]  # the most certain horizontal one, and both walls
+    assert informative_planes([floor, table, wall_a, wall_b], 3, first=2) == [1, 0, 2]
+    assert informative_planes([], 3) == [] and len(informative_planes([floor], 3)) == 1
+
+
+def test_a_plane_budget_bounds_the_factors_per_keyframe(room_loop):
+    scene, T_true, odometry, observations = room_loop
+    budget = dataclasses.replace(backend_config(), max_planes_per_keyframe=3)
+    backend = Isam2Backend(budget)
+    run_sequence(backend, scene, T_true, odometry, observations, associate=False)
+    full = Isam2Backend(backend_config())
+    run_sequence(full, scene, T_true, odometry, observations, associate=False)
+    graph = backend._graph
+    chars = (ord(backend.keys.pose_char), ord(backend.keys.plane_char))
+    per_pose = [0] * len(T_true)
+    for k in range(graph.size()):
+        keys = [gtsam.Symbol(key) for key in graph.at(k).keys()]
+        if tuple(key.chr() for key in keys) == chars:  # (pose, plane): an observation
+            per_pose[keys[0].index()] += 1
+    assert max(per_pose) == 3 and min(per_pose) >= 1
+    assert max(len(o.plane_truth) for o in observations) > 3, "the budget must bind"
+    assert backend.num_factors < full.num_factors
+    assert len(backend.plane_estimates()) < len(full.plane_estimates())
+    T_opt = np.array([T for _, T in backend.keyframe_poses().values()])
+    assert translation_rmse(T_opt, T_true) < 0.01
 
 
 def test_loop_closes_through_associated_landmarks(room_loop):

@@ -33,6 +33,15 @@ class BackendConfig:
     final_iterations: int = 2
     """Gauss-Newton iterations over the whole graph when a run finishes (0: none). From
     iSAM2's estimate two suffice: 7-Scenes ATE 4.87 cm with 2, 4.85 cm with 5 (0.9 s more)."""
+    max_planes_per_keyframe: int = 0
+    """0: every associated plane of a keyframe becomes a factor. N > 0: at most N, the
+    re-observed landmarks first, each group chosen to fix the pose best
+    (`isam2.informative_planes`); the map keeps every plane, those without a landmark
+    stay where merged. An iSAM2 update costs steeply more with the planes per pose (each
+    plane seen from many poses fills the Bayes tree): on the five-pass 7-Scenes replay
+    (about 21 planes per keyframe) 8 cut the update median in the fifth pass from 905 to
+    130 ms and the backend's peak memory from 1186 to 294 MiB, but moved the ATE of
+    single runs by -0.6 to +4.4 cm (README, "Long runs"), so it is not the default."""
     keys: LandmarkKeys = field(default_factory=LandmarkKeys)
     """Symbol characters of poses, plane and corner landmarks."""
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
@@ -79,6 +88,7 @@ class BackendConfig:
             ("final_iterations", 0),
             ("keyframe_max_frames", 1),
             ("keyframe_new_planes", 1),
+            ("max_planes_per_keyframe", 0),
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:

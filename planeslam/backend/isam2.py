@@ -5,7 +5,8 @@ landmarks (OrientedPlane3, world frame) and corner landmarks (Point3, world
 frame [m]) from `planeslam.factors.PlaneLandmarks`. Factors per keyframe: a
 prior on the first, a BetweenFactorPose3 from the previous keyframe on every
 other one (so no pose is ever constrained by planes alone), and the landmark
-factors of its observation. One `ISAM2.update` per keyframe (plus
+factors of its observation: its corners and the `max_planes_per_keyframe` of its planes
+that best fix its pose (`informative_planes`). One `ISAM2.update` per keyframe (plus
 `extra_updates` relinearising iterations).
 
 An indeterminate system ("Indeterminate linear system", a RuntimeError from
@@ -20,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 
 import gtsam
 import numpy as np
@@ -28,7 +29,7 @@ import numpy as np
 from planeslam.backend.config import BackendConfig
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import as_pose, invert_pose
-from planeslam.core.types import FrameMeasurements, PlaneEstimate
+from planeslam.core.types import FrameMeasurements, PlaneEstimate, PlaneMeasurement
 from planeslam.factors.landmarks import PlaneLandmarks
 from planeslam.factors.recovery import RecoveringISAM2, new_isam2
 
@@ -110,7 +111,8 @@ class Isam2Backend:
         index: frame index, strictly increasing; T_world_cam_guess (4, 4): initial
         pose (initialises new landmarks too); plane_ids / corner_ids: association of
         the measurements to landmark ids (see `PlaneLandmarks.add_observations`, or
-        `self.landmarks.associate`). odometry_T_prev_cur (4, 4): measured pose of
+        `self.landmarks.associate`); of the planes, the `max_planes_per_keyframe` that
+        best fix the pose get factors. odometry_T_prev_cur (4, 4): measured pose of
         this keyframe in the previous keyframe's camera frame; None derives it from
         the guess and the previous optimised pose. odometry_sigmas: (rot [rad],
         trans [m]) or (6,) sigmas (rotation first) overriding the config's.
@@ -156,7 +158,7 @@ class Isam2Backend:
             pose_key,
             T_guess,
             measurements,
-            plane_ids,
+            self._most_informative(measurements, plane_ids),
             corner_ids,
         )
         pose_values = gtsam.Values()
@@ -168,6 +170,24 @@ class Isam2Backend:
         self._timestamps[index] = float(timestamp)
         self._last_index = index
         return self._estimate.atPose3(pose_key).matrix()
+
+    def _most_informative(
+        self, measurements: FrameMeasurements, plane_ids: Mapping[int, int]
+    ) -> Mapping[int, int]:
+        """The `max_planes_per_keyframe` entries of `plane_ids` (observed plane id ->
+        landmark id) that together pin the pose down best (all if 0; `informative_planes`)."""
+        limit = self.config.max_planes_per_keyframe
+        if not limit or len(plane_ids) <= limit:
+            return plane_ids
+        planes = {p.id: p for p in measurements.planes}
+        known = set(self.landmarks.plane_ids)
+        ids = sorted(i for i in plane_ids if i in planes)
+        # Re-observed landmarks first: they tie the pose to the map; new ones fill up.
+        ids.sort(key=lambda i: plane_ids[i] not in known)
+        kept = informative_planes(
+            [planes[i] for i in ids], limit, first=sum(plane_ids[i] in known for i in ids)
+        )
+        return {ids[k]: plane_ids[ids[k]] for k in kept}
 
     def _odometry_sigmas(self, sigmas: tuple[float, float] | np.ndarray | None) -> np.ndarray:
         if sigmas is None:
@@ -209,3 +229,39 @@ class Isam2Backend:
         self._smoother.set_estimate(estimate)  # rebuilt there if another keyframe comes
         self.landmarks.update_estimates(estimate)
         return (time.perf_counter() - start) * 1e3
+
+
+def informative_planes(
+    planes: Sequence[PlaneMeasurement], limit: int, first: int | None = None
+) -> list[int]:
+    """Indices of at most `limit` of `planes` chosen greedily to maximise the log-determinant
+    of the pose information they give together (a D-optimal choice): a plane with normal n
+    (camera frame) and fit variances fixes the rotation about the two axes across n (1 /
+    its normal variance) and the translation along n (1 / its offset variance). So a floor
+    and two walls come before another horizontal surface, however certain that one is.
+    With `first`, the first `first` planes are chosen from before any of the others."""
+    information = []
+    for plane in planes:
+        n = np.asarray(plane.n_cam, dtype=np.float64)
+        cov = np.asarray(plane.covariance, dtype=np.float64)
+        var_normal = max(0.5 * (cov[0, 0] + cov[1, 1]), 1e-12)
+        var_offset = max(cov[2, 2], 1e-12)
+        info = np.zeros((6, 6))
+        info[:3, :3] = (np.eye(3) - np.outer(n, n)) / var_normal
+        info[3:, 3:] = np.outer(n, n) / var_offset
+        information.append(info)
+    if not information:
+        return []
+    # A small floor per block (rotation, translation), so that the log-determinant is
+    # finite from the first pick.
+    largest = np.max([np.diag(i) for i in information], axis=0)
+    total = np.diag(1e-6 * np.repeat([largest[:3].max(), largest[3:].max()], 3))
+    chosen: list[int] = []
+    split = len(planes) if first is None else first
+    for left in (list(range(split)), list(range(split, len(planes)))):
+        while left and len(chosen) < limit:
+            gains = [np.linalg.slogdet(total + information[k])[1] for k in left]
+            best = left.pop(int(np.argmax(gains)))
+            chosen.append(best)
+            total = total + information[best]
+    return chosen
