@@ -18,10 +18,10 @@ from typing import Any
 
 import numpy as np
 
-from planeslam.config import resolve_config
+from planeslam.config import open_configured, resolve_config
 from planeslam.core.config import ConfigLayer
 from planeslam.core.errors import EvaluationError
-from planeslam.io.sequence import RgbdDataset, open_dataset
+from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.world_map import Map
 from planeslam.slam import SLAM, frame_indices, run_frames
@@ -179,7 +179,7 @@ def relocalisation_benchmark(
     if map_path is None:
         layers.insert(0, "tracking.points.every_keyframe=true")
     cfg = resolve_config(root, config, camera, layers)
-    dataset = open_dataset(root, cfg.camera, cfg.dataset)
+    dataset, cfg = open_configured(root, cfg)
     indices = frame_indices(len(dataset), None, every)
     if map_path is not None:
         slam = SLAM(cfg, "merge", map=Map.load(map_path), localize=True)

@@ -15,12 +15,13 @@ says which layer set each key.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 from planeslam.backend.config import BackendConfig
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig, camera_override_values
@@ -39,6 +40,9 @@ from planeslam.frontend.config import IntersectionConfig, ObjectConfig, Segmenta
 from planeslam.io.config import DatasetConfig
 from planeslam.mapping.config import MapConfig
 from planeslam.tracking.config import TrackingConfig
+
+if TYPE_CHECKING:
+    from planeslam.io.sequence import RgbdDataset
 
 __all__ = [
     "PRESETS",
@@ -313,3 +317,14 @@ def resolve_config(
     the folder name), then the `config` file, the folder's `camera.yaml` when present, the
     camera override and the key overrides, each overlaid key by key."""
     return explain_config(dataset_dir, config, camera, overrides).config
+
+
+def open_configured(
+    path: str | Path, config: PlaneSlamConfig
+) -> tuple[RgbdDataset, PlaneSlamConfig]:
+    """The sequence at `path` read with `config`, and `config` with the sequence's camera
+    (a bag's camera_info replaces the configured intrinsics)."""
+    from planeslam.io.sequence import open_dataset  # reading images: not at start-up
+
+    dataset = open_dataset(path, config.camera, config.dataset)
+    return dataset, dataclasses.replace(config, camera=dataset.camera)

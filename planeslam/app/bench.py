@@ -21,8 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from planeslam.app.dataset_options import open_configured
-from planeslam.config import ConfigLayer, PlaneSlamConfig, resolve_config
+from planeslam.config import ConfigLayer, PlaneSlamConfig, open_configured, resolve_config
 from planeslam.core.camera import PixelRays
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.frontend.cloud import organized_cloud

@@ -59,11 +59,7 @@ def replay_sequence(source: Path, target: Path, passes: int, rate_hz: float = 30
             raise row_error(assoc, lineno, f"'{expected}'", fields)
         frames.append((float(fields[0]), fields[1], fields[3]))
     truth = read_tum(source / "groundtruth.txt")
-    truth_of: list[np.ndarray | None] = []  # per source frame: ground truth within 20 ms
-    for t_src, _, _ in frames:
-        nearest = int(np.argmin(np.abs(truth.timestamps - t_src)))
-        close = abs(truth.timestamps[nearest] - t_src) <= 0.02
-        truth_of.append(truth.T_world_cam[nearest] if close else None)
+    truth_of = [truth.pose_near(t_src, 0.02) for t_src, _, _ in frames]  # per source frame
     order = pass_order(len(frames), passes)
     target.mkdir(parents=True, exist_ok=True)
     for folder in ("rgb", "depth"):

@@ -1,18 +1,15 @@
-"""What the commands that read a dataset share: which bag topics to read (`--rgb-topic`,
-`--depth-topic`, `--camera-info-topic`), applied to the resolved config's `dataset.bag`
-section so that the saved config.yaml reproduces the run, and opening the dataset with
-the config (`open_configured`)."""
+"""Command-line options of the commands that read a dataset: which bag topics to read
+(`--rgb-topic`, `--depth-topic`, `--camera-info-topic`), applied to the resolved config's
+`dataset.bag` section so that the saved config.yaml reproduces the run."""
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
 
 from planeslam.config import PlaneSlamConfig
 from planeslam.io.config import BagConfig
-from planeslam.io.sequence import RgbdDataset, open_dataset
 
 
 @dataclass(frozen=True)
@@ -37,15 +34,6 @@ class TopicOverrides:
             return config
         bag: BagConfig = dataclasses.replace(config.dataset.bag, **given)
         return dataclasses.replace(config, dataset=dataclasses.replace(config.dataset, bag=bag))
-
-
-def open_configured(
-    path: str | Path, config: PlaneSlamConfig
-) -> tuple[RgbdDataset, PlaneSlamConfig]:
-    """The sequence at `path` read with `config`, and `config` with the sequence's camera
-    (a bag's camera_info replaces the configured intrinsics)."""
-    dataset = open_dataset(path, config.camera, config.dataset)
-    return dataset, dataclasses.replace(config, camera=dataset.camera)
 
 
 def add_topic_options(p: argparse.ArgumentParser) -> None:

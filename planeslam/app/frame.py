@@ -10,9 +10,9 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from planeslam.app.dataset_options import TopicOverrides, open_configured
+from planeslam.app.dataset_options import TopicOverrides
 from planeslam.app.overlay import draw_overlay, format_size, write_png
-from planeslam.config import ConfigLayer, resolve_config
+from planeslam.config import ConfigLayer, open_configured, resolve_config
 from planeslam.core.config import save_yaml
 from planeslam.core.errors import DatasetFormatError
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd

@@ -29,10 +29,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
-from planeslam.app.dataset_options import TopicOverrides, open_configured
+from planeslam.app.dataset_options import TopicOverrides
 from planeslam.app.progress import progress_bar
 from planeslam.app.signals import deferred_interrupts
-from planeslam.config import PlaneSlamConfig, explain_config
+from planeslam.config import PlaneSlamConfig, explain_config, open_configured
 from planeslam.core.config import ConfigLayer, override_layer
 from planeslam.core.errors import ConfigError, PlaneSlamError
 from planeslam.core.safe_files import LineWriter, atomic_output, write_text_atomic

@@ -51,6 +51,15 @@ class MapContents:
         except KeyError:
             raise MapError(f"no map plane with id {plane_id}") from None
 
+    def plane_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(ids (M,) int64, normals (M, 3), d (M,) [m]), world frame, rows by increasing id."""
+        planes = list(self.planes.values())
+        return (
+            np.fromiter(self.planes, dtype=np.int64, count=len(planes)),
+            np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3),
+            np.array([p.d for p in planes], dtype=np.float64),
+        )
+
     def new_plane_id(self) -> int:
         self.next_plane_id += 1
         return self.next_plane_id - 1

@@ -116,7 +116,8 @@ def _merge_planes(
     R, t = T[:3, :3], T[:3, 3]
     cos_gate = math.cos(math.radians(contents.config.merge_max_angle_deg))
     to_map: dict[int, int] = {}
-    targets: _MapPlanes | None = None  # the map's planes before this frame, when needed
+    targets: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # when needed: the
+    # map's planes before this frame
     for k, p in enumerate(observation.segmentation.planes):
         n_w, d_w = transform_plane(T, np.asarray(p.normal, dtype=np.float64), float(p.d))
         c_w = R @ p.centroid + t
@@ -135,7 +136,7 @@ def _merge_planes(
             )
             target = None
         if target is None and contents.config.consolidate:
-            targets = targets or _MapPlanes.of(contents)
+            targets = targets or contents.plane_arrays()
             taken = set(to_map.values()) | set(pairs.values())
             target = _same_plane_segment(contents, targets, p, T, n_w, c_w, outline_w, taken)
         if target is None:
@@ -160,27 +161,9 @@ def _merge_planes(
     return to_map
 
 
-@dataclass(frozen=True)
-class _MapPlanes:
-    """The map's planes as arrays: ids (M,), normals (M, 3), offsets (M,) [m]."""
-
-    ids: np.ndarray
-    normals: np.ndarray
-    offsets: np.ndarray
-
-    @staticmethod
-    def of(contents: MapContents) -> _MapPlanes:
-        planes = list(contents.planes.values())
-        return _MapPlanes(
-            np.array([p.id for p in planes], dtype=np.int64),
-            np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3),
-            np.array([p.d for p in planes], dtype=np.float64),
-        )
-
-
 def _same_plane_segment(
     contents: MapContents,
-    targets: _MapPlanes,
+    targets: tuple[np.ndarray, np.ndarray, np.ndarray],
     plane: Plane,
     T: np.ndarray,
     n_w: np.ndarray,
@@ -188,19 +171,20 @@ def _same_plane_segment(
     outline_w: np.ndarray,
     taken: set[int],
 ) -> int | None:
-    """The map plane of `targets` (not in `taken`) that the observed `plane` (camera frame;
-    seen from T_world_cam `T`; n_w, centroid c_w (3,) and outline (K, 3) in the world
-    frame) is a part of, or None. Same plane: the map plane, moved to the camera, within
-    `consolidate_max_sigmas` of the observation in its fit covariance (tangent normal,
-    offset; widened by `_gate_floor`), within the angle and offset caps; then the outlines
-    overlapping or nearest within `consolidate_max_gap_m`."""
+    """The map plane of `targets` ((ids, normals, offsets), `MapContents.plane_arrays`; not
+    in `taken`) that the observed `plane` (camera frame; seen from T_world_cam `T`; n_w,
+    centroid c_w (3,) and outline (K, 3) in the world frame) is a part of, or None. Same
+    plane: the map plane, moved to the camera, within `consolidate_max_sigmas` of the
+    observation in its fit covariance (tangent normal, offset; widened by `_gate_floor`),
+    within the angle and offset caps; then the outlines overlapping or nearest within
+    `consolidate_max_gap_m`."""
     cfg = contents.config
-    normals, offsets = targets.normals, targets.offsets
+    ids, normals, offsets = targets
     cos_cap = math.cos(math.radians(cfg.consolidate_max_angle_deg))
     close = (normals @ n_w >= cos_cap) & (
         np.abs(normals @ c_w + offsets) <= cfg.consolidate_max_offset_m
     )
-    close &= ~np.isin(targets.ids, list(taken))
+    close &= ~np.isin(ids, list(taken))
     rows = np.flatnonzero(close)
     if not len(rows):
         return None
@@ -212,14 +196,14 @@ def _same_plane_segment(
     rows = rows[mahalanobis2 <= cfg.consolidate_max_sigmas**2]
     best, best_gap = None, cfg.consolidate_max_gap_m
     for row in rows:
-        candidate = contents.planes[int(targets.ids[row])]
+        candidate = contents.planes[int(ids[row])]
         axes, foot = plane_basis(candidate.normal), -candidate.d * candidate.normal
         gap = convex_polygon_gap(
             convex_hull_2d((candidate.outline - foot) @ axes.T),
             convex_hull_2d((outline_w - foot) @ axes.T),
         )
         if gap <= best_gap:
-            best, best_gap = int(targets.ids[row]), gap
+            best, best_gap = int(ids[row]), gap
     return best
 
 

@@ -10,6 +10,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from planeslam.core.errors import MapError
+from planeslam.core.geometry import transform_points
 
 logger = logging.getLogger(__name__)
 
@@ -169,7 +170,7 @@ class FusedCloudSize:
     def _add(self, points: np.ndarray, T_world_points: np.ndarray | None) -> None:
         points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         if T_world_points is not None:
-            points = points @ T_world_points[:3, :3].T + T_world_points[:3, 3]
+            points = transform_points(T_world_points, points)
         points = points[np.all(np.isfinite(points), axis=1)]
         keys = np.floor(points / self.voxel_m).astype(np.int64)
         keys = keys[np.all(np.abs(keys) < _KEY_OFFSET, axis=1)]

@@ -52,17 +52,12 @@ class Map:
         config: MapConfig | None = None,
         object_config: ObjectConfig | None = None,
         patterns: Sequence[ObjectPattern] = DEFAULT_PATTERNS,
-        sensor: DepthNoiseConfig | None = None,
     ) -> None:
         """`object_config` gives the orientation tolerance, corner and size parameters of
-        re-aggregation (its gravity keys are unused: see `set_gravity`); `sensor` the depth
-        noise of the frames to merge (consolidation's gate)."""
+        re-aggregation (its gravity keys are unused: see `set_gravity`); the depth noise of
+        the frames to merge is `sensor` (the default model until set)."""
         self.patterns = tuple(patterns)
-        self._contents = MapContents(
-            config or MapConfig(),
-            object_config or ObjectConfig(),
-            sensor=sensor or DepthNoiseConfig(),
-        )
+        self._contents = MapContents(config or MapConfig(), object_config or ObjectConfig())
         self._revision = 0
 
     @property
@@ -138,9 +133,7 @@ class Map:
 
     def plane_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids (M,) int64, normals (M, 3), d (M,)), world frame, rows by increasing id."""
-        planes = list(self._contents.planes.values())
-        normals = np.array([p.normal for p in planes]).reshape(-1, 3)
-        return self.plane_ids(), normals, np.array([p.d for p in planes], dtype=np.float64)
+        return self._contents.plane_arrays()
 
     def corner_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids (K,) int64, planes (K, 3) int64 ROW INDICES into `plane_arrays`, points (K, 3)

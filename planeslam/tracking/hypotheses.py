@@ -16,8 +16,8 @@ form (T_world_cam, (H, 4, 4)):
 `score_hypotheses` verifies every hypothesis against all of the frame's primitives
 (a RANSAC over primitive correspondences): the observed planes (by area) that find a map
 plane within the gates, the corners that land on a map corner, the edges whose two planes
-land on the two planes of a map edge no shorter than the observed one, and, when given,
-the point matches that agree; objects of the same class and size add to the score.
+land on the two planes of a map edge no shorter than the observed one; objects of the
+same class and size add to the score.
 
 Frames: FrameView in the camera frame, MapView in the world frame.
 """
@@ -202,58 +202,32 @@ def score_hypotheses(
     max_angle_rad: float,
     max_offset_m: float,
     max_corner_m: float,
-    point_support: np.ndarray | None = None,
 ) -> np.ndarray:
     """(H,) support of each hypothesis T (H, 4, 4) from all of the frame's primitives:
     planes (each counts 1 + its share of the visible area), corners (2 each), edges whose
-    planes both land on a map edge's planes (1 each, when the map edge is not shorter),
-    objects whose class and size match a map object near them (2 each), and
-    `point_support` (H,) (matched keypoints that agree, / 10)."""
-    scores = [
-        _score_chunk(
-            frame,
-            view,
-            T[k : k + _CHUNK],
-            max_angle_rad,
-            max_offset_m,
-            max_corner_m,
-            None if point_support is None else point_support[k : k + _CHUNK],
-        )
-        for k in range(0, len(T), _CHUNK)
-    ]
-    return np.concatenate(scores) if scores else np.zeros(0)
+    planes both land on a map edge's planes (1 each, when the map edge is not shorter) and
+    objects whose class and size match a map object near them (2 each). Scored `_CHUNK`
+    hypotheses at a time: the (H, N, M) plane tests of a large map stay small."""
+    area = frame.areas if frame.areas is not None else frame.weights
+    share = area / max(float(area.sum()), 1e-12)
+    score = np.zeros(len(T))
+    for k in range(0, len(T), _CHUNK):
+        chunk, part = T[k : k + _CHUNK], slice(k, k + _CHUNK)
+        partners = _plane_partners(frame, view, chunk, max_angle_rad, max_offset_m)
+        score[part] = partners.any(axis=2) @ (1.0 + share)
+        if len(frame.corner_points) and len(view.corner_points):
+            moved = moved_points(chunk, frame.corner_points)
+            dist = np.linalg.norm(moved[:, :, None] - view.corner_points[None, None], axis=-1)
+            score[part] += 2.0 * np.count_nonzero((dist <= max_corner_m).any(axis=2), axis=1)
+        if len(frame.edge_planes) and len(view.edge_planes):
+            score[part] += _edge_support(frame, view, partners)
+        if len(frame.object_sizes) and len(view.object_sizes):
+            score[part] += 2.0 * _object_support(frame, view, chunk, max_corner_m)
+    return score
 
 
 _CHUNK = 128
-"""Hypotheses scored at once: the (H, N, M) plane tests of a large map stay small."""
-
-
-def _score_chunk(
-    frame: FrameView,
-    view: MapView,
-    T: np.ndarray,
-    max_angle_rad: float,
-    max_offset_m: float,
-    max_corner_m: float,
-    point_support: np.ndarray | None,
-) -> np.ndarray:
-    """`score_hypotheses` on one chunk of hypotheses."""
-    partners = _plane_partners(frame, view, T, max_angle_rad, max_offset_m)
-    planes_ok = partners.any(axis=2)
-    area = frame.areas if frame.areas is not None else frame.weights
-    share = area / max(float(area.sum()), 1e-12)
-    score = planes_ok @ (1.0 + share)
-    if len(frame.corner_points) and len(view.corner_points):
-        moved = moved_points(T, frame.corner_points)
-        dist = np.linalg.norm(moved[:, :, None] - view.corner_points[None, None], axis=-1)
-        score = score + 2.0 * np.count_nonzero((dist <= max_corner_m).any(axis=2), axis=1)
-    if len(frame.edge_planes) and len(view.edge_planes):
-        score = score + _edge_support(frame, view, partners)
-    if len(frame.object_sizes) and len(view.object_sizes):
-        score = score + 2.0 * _object_support(frame, view, T, max_corner_m)
-    if point_support is not None:
-        score = score + point_support / 10.0
-    return score
+"""Hypotheses scored at once (`score_hypotheses`)."""
 
 
 def moved_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -4,10 +4,10 @@ Candidates come from every primitive (`hypotheses`: corners, plane triples, two 
 with an edge) against the whole map, and from keypoints: the keyframes anywhere in the
 map that share most descriptors with the frame (`KeypointMap.vote`) are matched in full
 and a point RANSAC gives one more candidate. Every candidate is verified against all of
-the frame's primitives (`hypotheses.score_hypotheses`, with the point matches that agree
-under it); the best `relocalise_candidates` go on to the tracker's robust estimate. Ties
-go to the candidate nearest the prediction, so a symmetric room keeps its orientation
-when nothing else tells them apart.
+the frame's primitives (`hypotheses.score_hypotheses`; the point matches that agree under
+it add to the best-scored candidates); the best `relocalise_candidates` go on to the
+tracker's robust estimate. Ties go to the candidate nearest the prediction, so a
+symmetric room keeps its orientation when nothing else tells them apart.
 """
 
 from __future__ import annotations

@@ -365,7 +365,7 @@ class Tracker:
 
     # -------------------------------------------------------------------------- joint
 
-    def _terms(
+    def _estimate(
         self,
         frame: FrameView,
         view: MapView,
@@ -373,11 +373,12 @@ class Tracker:
         T: np.ndarray,
         keypoints: Keypoints | None,
         matches: PointMatches,
-    ) -> tuple[PlaneTerms, list[PointTerms], LineTerms]:
-        """The estimator's terms under T: associated planes and corners, the point matches
-        within twice their inlier threshold, and the real ends of edges whose two planes
-        are associated with the two planes of a map edge (the nearer map end, within
-        `line_gate_m` along the edge)."""
+    ) -> PoseEstimate | None:
+        """`estimate_pose` from T (4, 4) over the terms under T: associated planes and
+        corners, the point matches within twice their inlier threshold, and the real ends
+        of edges whose two planes are associated with the two planes of a map edge (the
+        nearer map end, within `line_gate_m` along the edge); None without plane or point
+        terms."""
         cfg = self.config
         obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
         cov = (
@@ -412,23 +413,10 @@ class Tracker:
                     matches.covariances_world[use] + shared,
                 )
             )
-        return planes, terms, self._line_terms(frame, view, assoc, T)
-
-    def _estimate(
-        self,
-        frame: FrameView,
-        view: MapView,
-        assoc: Association,
-        T: np.ndarray,
-        keypoints: Keypoints | None,
-        matches: PointMatches,
-    ) -> PoseEstimate | None:
-        """`estimate_pose` from T (4, 4) over the `_terms` under T; None without plane or
-        point terms."""
-        planes, points, lines = self._terms(frame, view, assoc, T, keypoints, matches)
-        if not len(planes) and not sum(len(p) for p in points):
+        if not len(planes) and not sum(len(p) for p in terms):
             return None
-        return estimate_pose(T, planes, points, lines, self.settings)
+        lines = self._line_terms(frame, view, assoc, T)
+        return estimate_pose(T, planes, terms, lines, self.settings)
 
     def _line_terms(
         self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
