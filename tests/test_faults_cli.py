@@ -37,7 +37,14 @@ def seq(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return synth_sequence(tmp_path_factory.mktemp("cli") / "seq", frames=FRAMES).out_dir
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start_run(seq: Path, out: Path, *extra: str, **kwargs) -> subprocess.Popen[str]:
+    """`planeslam run` in a child with Ctrl-C's default handling: a test run started in the
+    background by a shell without job control inherits SIGINT ignored, and Python keeps it
+    so (as a shell's background job should)."""
     return subprocess.Popen(
         [sys.executable, "-m", "planeslam.app.cli", "run", str(seq), "--out", str(out), "-q"]
         + list(extra),
@@ -45,6 +52,7 @@ def start_run(seq: Path, out: Path, *extra: str, **kwargs) -> subprocess.Popen[s
         stderr=subprocess.PIPE,
         text=True,
         cwd=REPO,
+        preexec_fn=_default_sigint,
         **kwargs,
     )
 

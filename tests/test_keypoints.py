@@ -7,11 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from helpers import assert_pose_close
+from test_tracking import camera_pose, map_view, observe
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.geometry import invert_pose, pose_from_quat
 from planeslam.frontend.cloud import organized_cloud
-from planeslam.tracking.config import PointConfig
+from planeslam.tracking.config import PointConfig, TrackingConfig
 from planeslam.tracking.keypoints import (
     KeypointDetector,
     KeypointMap,
@@ -19,6 +20,7 @@ from planeslam.tracking.keypoints import (
     match_descriptors,
     ransac_pose,
 )
+from planeslam.tracking.relocalise import relocalisation_candidates
 
 CAMERA = CameraConfig()
 SENSOR = DepthNoiseConfig()
@@ -126,3 +128,29 @@ def test_two_rendered_views_register_from_keypoints(noise_model: str) -> None:
     assert_pose_close(found.T_world_cam, path.T_world_cam[1], 0.02, 1.0)
     baseline = invert_pose(path.T_world_cam[0]) @ path.T_world_cam[1]
     assert np.linalg.norm(baseline[:3, 3]) > 0.15  # a wide baseline indeed
+
+
+def test_point_evidence_that_no_rival_could_match_is_the_only_candidate(
+    rng: np.random.Generator,
+) -> None:
+    """A frame whose keypoints match a keyframe by the hundred needs no primitive
+    hypotheses: a pose elsewhere could fit at most its few planes and the other matches,
+    far below the points' support. Without that margin the primitives are tried too."""
+    rgb, cloud = textured(rng), cloud_of(np.full((480, 640), 2.0, np.float32))
+    detector = KeypointDetector(CAMERA, SENSOR, PointConfig())
+    store = KeypointMap(detector)
+    T = pose_from_quat(np.array([1.0, 0.5, 0.2]), np.array([0.0, 0.0, 0.38, 0.925]))
+    query = detector.detect(rgb, cloud)
+    store.add(0, T, None, None, keypoints=query)  # the same view, taken at T
+    frame = observe(camera_pose(), list(range(6)), rng)  # 6 planes, 2 corners to try
+    found = relocalisation_candidates(
+        frame, map_view(), query, store, TrackingConfig(), SENSOR, rng, np.eye(4)
+    )
+    assert len(found.poses) == 1 and len(found.matches) > 100
+    assert_pose_close(found.poses[0], T, 1e-3, 0.05)
+    undecided = TrackingConfig(relocalise_min_points=10 * len(found.matches))
+    tried = relocalisation_candidates(
+        frame, map_view(), query, store, undecided, SENSOR, rng, np.eye(4)
+    )
+    assert len(tried.poses) > 1
+    assert_pose_close(tried.poses[0], T, 1e-3, 0.05)

@@ -2,7 +2,16 @@
 
 from __future__ import annotations
 
-from planeslam.eval.relocalisation import RelocalisationAttempt, RelocalisationReport
+from pathlib import Path
+
+import pytest
+
+from planeslam.eval.relocalisation import (
+    RelocalisationAttempt,
+    RelocalisationReport,
+    relocalisation_benchmark,
+)
+from planeslam.sim.render import synthesize
 
 
 def test_report_counts_against_truth_and_the_map_run() -> None:
@@ -21,3 +30,14 @@ def test_report_counts_against_truth_and_the_map_run() -> None:
     assert "2 within them of the map run's own poses" in report.to_text()
     without_run = RelocalisationReport([RelocalisationAttempt(0, True, 0.01, 0.5, 1.0)])
     assert without_run.consistent is None and "map run" not in without_run.to_text()
+
+
+@pytest.mark.slow
+def test_frames_of_the_paper_circle_are_placed_in_its_map(tmp_path: Path) -> None:
+    """Every 4th frame of the built-in box-in-a-room circle placed on its own in the map of
+    a full run: all within the tolerances of the truth and of the map run's own poses."""
+    seq = synthesize("box_room_circle", tmp_path / "seq", seed=5).out_dir
+    report = relocalisation_benchmark(seq, every=4)
+    d = report.to_dict()
+    assert d["attempts"] == 6
+    assert d["correct"] == d["consistent_with_map_run"] == 6 and d["not_found"] == 0

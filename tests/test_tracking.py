@@ -11,9 +11,11 @@ from helpers import assert_pose_close
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import invert_pose, pose_from_quat, transform_plane
 from planeslam.tracking import hypotheses
+from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.estimator import PoseConstraints
 from planeslam.tracking.relocalise import primitive_hypotheses
-from planeslam.tracking.tracker import FrameView, MapView, Tracker
+from planeslam.tracking.tracker import FrameView, JointSolve, MapView, Tracker, is_rival
 
 # A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
 # visible corner is at (1.0, 0.8, 0.2); every normal faces the camera side (+x, +y, +z),
@@ -316,3 +318,29 @@ def test_after_a_loss_a_plane_fit_to_the_stale_prediction_is_not_taken(
     result = tracker._track(frame, map_view(), near, None, None)
     assert result.path == "relocalised"
     assert result.constraints is not None and result.constraints.planes_full
+
+
+def test_a_rival_with_the_same_point_matches_is_the_same_place_not_an_ambiguity() -> None:
+    """Refined candidates a few cm apart that explain the same keypoint matches are one
+    place fitted twice; a pose elsewhere with its own evidence (or none) is a rival."""
+
+    def solve(T: np.ndarray, planes: int, points: int) -> JointSolve:
+        terms = {"planes": planes, "corners": 0, "points": points, "lines": 0}
+        return JointSolve(T, Association([], []), PoseConstraints(3, 3, terms=terms))
+
+    cfg = TrackingConfig()
+    T = camera_pose()
+    best = solve(T, 14, 1400)
+    best_points = np.arange(1500) < 1400
+    nearby = solve(perturb(T, 0.15, 6.0), 5, 1300)  # beyond 10 cm and 5 deg, 93 % of the score
+    assert is_rival(best, nearby, best_points, np.arange(1500) < 1300, cfg) is False
+    own_points = np.arange(1500) >= 200  # 1300 matches, only 1200 of them the best's
+    assert is_rival(best, nearby, best_points, own_points, cfg) is False
+    elsewhere = np.zeros(1500, bool)
+    elsewhere[1400:] = True  # 100 matches none of which agree with the best
+    rival = solve(perturb(T, 1.0, 60.0), 120, 100)
+    assert is_rival(best, rival, best_points, elsewhere, cfg) is True
+    planes_only = solve(perturb(T, 1.0, 60.0), 14, 0)  # a symmetric room without texture
+    assert is_rival(solve(T, 14, 0), planes_only, np.zeros(0, bool), np.zeros(0, bool), cfg)
+    assert not is_rival(best, solve(perturb(T, 0.05, 2.0), 14, 0), best_points, elsewhere, cfg)
+    assert not is_rival(best, solve(perturb(T, 1.0, 60.0), 3, 0), best_points, elsewhere, cfg)

@@ -3,10 +3,11 @@
 Candidates come from every primitive (`hypotheses`: corners, plane triples, two planes
 with an edge) against the whole map, and from keypoints: the keyframes anywhere in the
 map that share most descriptors with the frame (`KeypointMap.vote`) are matched in full
-and a point RANSAC gives one more candidate. Every candidate is verified against all of
-the frame's primitives (`hypotheses.score_hypotheses`; the point matches that agree under
-it add to the best-scored candidates); the best `relocalise_candidates` go on to the
-tracker's robust estimate. Ties go to the candidate nearest the prediction, so a
+and a point RANSAC gives one more candidate (the only one when its inliers outweigh all
+that a pose elsewhere could fit: then no rival can exist). Every candidate is verified
+against all of the frame's primitives (`hypotheses.score_hypotheses`; the point matches
+that agree under it add to the best-scored candidates); the best `relocalise_candidates`
+go on to the tracker's robust estimate. Ties go to the candidate nearest the prediction, so a
 symmetric room keeps its orientation when nothing else tells them apart.
 """
 
@@ -72,8 +73,8 @@ def relocalisation_candidates(
 ) -> Candidates:
     """The `relocalise_candidates` best-supported pose candidates for `frame` anywhere in
     the map (see the module docstring); T_pred (4, 4) only breaks ties."""
-    poses = primitive_hypotheses(frame, view, cfg) if not view.empty else np.zeros((0, 4, 4))
     matches = PointMatches.empty()
+    poses = np.zeros((0, 4, 4))
     threshold = np.zeros(0)
     p_cam = np.zeros((0, 3))
     if keypoints is not None and keypoint_map is not None and len(keypoints):
@@ -91,7 +92,11 @@ def relocalisation_candidates(
                 cfg.points.min_inliers,
             )
             if found is not None:
+                if _points_decide(frame, found.count, len(matches), cfg):
+                    return Candidates(found.T_world_cam[None], matches)
                 poses = np.concatenate([found.T_world_cam[None], poses])
+    if not view.empty:
+        poses = np.concatenate([poses, primitive_hypotheses(frame, view, cfg)])
     if not len(poses):
         return Candidates(np.zeros((0, 4, 4)), matches)
     scores = np.zeros(len(poses))
@@ -112,6 +117,18 @@ def relocalisation_candidates(
     order = np.lexsort((distance, -np.round(scores, 6)))
     order = _distinct(poses, order, cfg.relocalise_candidates)
     return Candidates(poses[order], matches)
+
+
+def _points_decide(frame: FrameView, inliers: int, matches: int, cfg: TrackingConfig) -> bool:
+    """Whether the point pose's `inliers` of `matches` leave no room for a rival (see
+    `Tracker.relocalise`): a pose elsewhere could at most fit all the frame's planes and
+    corners and the other matches, and that would score below `relocalise_ambiguity` of
+    the inliers' own score, so the primitive hypotheses need not be made."""
+    most_elsewhere = len(frame.plane_ids) + 2.0 * len(frame.corner_points)
+    most_elsewhere += (matches - inliers) / 10.0
+    return inliers >= cfg.relocalise_min_points and (
+        most_elsewhere < cfg.relocalise_ambiguity * inliers / 10.0
+    )
 
 
 def _agreeing(

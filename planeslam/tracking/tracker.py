@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -501,11 +501,17 @@ class Tracker:
 
     def _agreeing(self, T: np.ndarray, keypoints: Keypoints | None, matches: PointMatches) -> int:
         """Point matches within their inlier threshold under T (4, 4)."""
+        return int(np.count_nonzero(self._agreeing_mask(T, keypoints, matches)))
+
+    def _agreeing_mask(
+        self, T: np.ndarray, keypoints: Keypoints | None, matches: PointMatches
+    ) -> np.ndarray:
+        """(M,) bool: the point matches within their inlier threshold under T (4, 4)."""
         if keypoints is None or not len(matches):
-            return 0
+            return np.zeros(len(matches), dtype=bool)
         p_cam = keypoints.points_cam[matches.observed]
         threshold = inlier_threshold(p_cam, self.config.points, self.sensor)
-        return int(np.count_nonzero(point_residuals(T, p_cam, matches.points_world) < threshold))
+        return point_residuals(T, p_cam, matches.points_world) < threshold
 
     def _joint_inliers(
         self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
@@ -577,10 +583,10 @@ class Tracker:
         """The best candidate of a whole-map search (`relocalisation_candidates`), refined
         by `joint`. Taken only with more support than a minimal set gives (at least
         `relocalise_min_planes` inlier planes that are `relocalise_min_plane_fraction` of the
-        frame's, or `relocalise_min_points` inlier point matches) and without a rival: a
-        refined candidate elsewhere (beyond 10 cm or 5 deg)
-        with at least `relocalise_ambiguity` of its score means the map is ambiguous
-        there (a symmetric room), and the frame stays lost."""
+        frame's, or `relocalise_min_points` inlier point matches) and without a rival
+        (`is_rival`): a refined candidate elsewhere with nearly its score and other evidence
+        means the map is ambiguous there (a symmetric room), and the frame stays lost. Point
+        matches count when they agree with a pose within their inlier threshold."""
         cfg = self.config
         candidates = relocalisation_candidates(
             frame, view, keypoints, self.keypoint_map, cfg, self.sensor, self.rng, T_pred
@@ -595,8 +601,14 @@ class Tracker:
         ]
         if not solved:
             return None
-        solved.sort(key=lambda s: -s.score)
-        best = solved[0]
+        ranked = sorted(
+            (
+                _with_point_inliers(s, self._agreeing_mask(s.T, keypoints, candidates.matches))
+                for s in solved
+            ),
+            key=lambda pair: -pair[0].score,
+        )
+        best, best_points = ranked[0]
         planes = best.constraints.terms["planes"]
         enough = best.point_inliers >= cfg.relocalise_min_points or (
             planes >= cfg.relocalise_min_planes
@@ -607,10 +619,8 @@ class Tracker:
                 "relocalisation: best candidate has too little support (%s)", best.constraints.terms
             )
             return None
-        for rival in solved[1:]:
-            if rival.score >= cfg.relocalise_ambiguity * best.score and not _same_pose(
-                rival.T, best.T
-            ):
+        for rival, rival_points in ranked[1:]:
+            if is_rival(best, rival, best_points, rival_points, cfg):
                 logger.debug(
                     "relocalisation ambiguous: scores %.1f and %.1f", best.score, rival.score
                 )
@@ -931,6 +941,33 @@ class Tracker:
             constraints=found,
             keypoints=keypoints,
         )
+
+
+def _with_point_inliers(solve: JointSolve, agreeing: np.ndarray) -> tuple[JointSolve, np.ndarray]:
+    """`solve` with its point term counting the matches `agreeing` ((M,) bool: within their
+    inlier threshold at its pose), and that mask. The estimate's own point gate is wide (a
+    keyframe's pose error is shared by its points), so refined poses a few cm apart would
+    look equally supported."""
+    terms = {**solve.constraints.terms, "points": int(np.count_nonzero(agreeing))}
+    return replace(solve, constraints=replace(solve.constraints, terms=terms)), agreeing
+
+
+def is_rival(
+    best: JointSolve,
+    other: JointSolve,
+    best_points: np.ndarray,
+    other_points: np.ndarray,
+    cfg: TrackingConfig,
+) -> bool:
+    """Whether `other` makes a relocalisation to `best` ambiguous: it scores at least
+    `relocalise_ambiguity` of the best, lies elsewhere (beyond 10 cm or 5 deg) and is not the
+    same place fitted worse, which explains the same point matches (the (M,) bool masks of
+    the matches agreeing with each: half of the other's, and at least `points.min_inliers`,
+    are the best's too). A symmetric room's other corners match other keypoints, or none."""
+    if other.score < cfg.relocalise_ambiguity * best.score or _same_pose(other.T, best.T):
+        return False
+    shared = np.count_nonzero(other_points & best_points)
+    return bool(shared < max(cfg.points.min_inliers, 0.5 * np.count_nonzero(other_points)))
 
 
 def _same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
