@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -85,6 +85,7 @@ class RelocalisationReport:
         return sum(a.found for a in self.attempts) - self.correct
 
     def to_dict(self) -> dict[str, Any]:
+        """The summary, and under "frames" every attempt (`RelocalisationAttempt`'s fields)."""
         ms = np.array([a.milliseconds for a in self.attempts])
         n = len(self.attempts)
         return {
@@ -98,6 +99,7 @@ class RelocalisationReport:
             "tolerance_deg": self.tolerance_deg,
             "ms_median": float(np.median(ms)) if n else 0.0,
             "ms_max": float(ms.max()) if n else 0.0,
+            "frames": [asdict(a) for a in self.attempts],
         }
 
     def to_text(self) -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -26,6 +27,9 @@ def test_report_counts_against_truth_and_the_map_run() -> None:
     assert (d["correct"], d["wrong"], d["not_found"]) == (1, 2, 1)
     assert d["consistent_with_map_run"] == 2
     assert d["ms_median"] == 150.0 and d["ms_max"] == 300.0
+    assert [f["index"] for f in d["frames"]] == [0, 10, 20, 30]
+    assert d["frames"][1]["map_translation_error_m"] == 0.02 and not d["frames"][3]["found"]
+    json.dumps(d)  # the CLI's --json prints it
     assert "1 of 4 frames relocalised within 5 cm and 3 deg (25.0 %)" in report.to_text()
     assert "2 within them of the map run's own poses" in report.to_text()
     without_run = RelocalisationReport([RelocalisationAttempt(0, True, 0.01, 0.5, 1.0)])

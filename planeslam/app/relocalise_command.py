@@ -27,7 +27,9 @@ def add_relocalise_command(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--map", type=Path, default=None, help="map.json to place frames in")
     p.add_argument("--every", type=int, default=10, help="every n-th frame (default 10)")
     add_config_options(p)
-    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument(
+        "--json", action="store_true", help="print one JSON object (the summary and every attempt)"
+    )
     p.set_defaults(func=_cmd_relocalise)
 
 
