@@ -5,6 +5,7 @@ and the replayed multi-pass sequences of `planeslam bench long`."""
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -145,9 +146,13 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(tmp_path: Path) -> None
 
     source = synthesize("box_room_circle", tmp_path / "src", seed=0).out_dir  # 24 views
     replay = replay_sequence(source, tmp_path / "replay", passes=2)
-    result = run_long(replay, frames_per_pass=23, block=20)
+    blocks_path = tmp_path / "blocks.jsonl"
+    result = run_long(replay, frames_per_pass=23, block=20, blocks_path=blocks_path)
     assert result.frames == 47
     assert [b["frames"] for b in result.blocks] == ["0-19", "20-39", "40-46"]
+    written = [json.loads(line) for line in blocks_path.read_text().splitlines()]
+    assert [w["frames"] for w in written] == ["0-19", "20-39", "40-46"]  # as each block ended
+    assert [w["map_planes"] for w in written] == [b["map_planes"] for b in result.blocks]
     assert len(result.planes_per_pass) == 2
     assert result.planes_per_pass[1] <= result.planes_per_pass[0] + 2  # a revisit adds ~none
     assert all(b["rss_main_mb"] > 0 and b["rss_backend_mb"] > 0 for b in result.blocks)

@@ -10,6 +10,7 @@ the map's landmarks and both processes' resident memory, then the ATE of the who
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import time
@@ -149,10 +150,13 @@ def run_long(
     block: int = 1000,
     config: str | Path | None = None,
     progress: bool = False,
+    blocks_path: Path | None = None,
 ) -> LongRunResult:
     """SLAM (the config's backend) over a replayed folder, measured block by block.
     `frames_per_pass`: the frames each turn adds (the source's frames - 1, `pass_order`);
-    the first pass has one more."""
+    the first pass has one more. With `blocks_path`, each block's row is appended there as
+    a JSON line as soon as the block ends (its iSAM2 update times, known only after the
+    final optimisation, are left out), so an interrupted run keeps its blocks."""
     cfg = resolve_config(root, config)
     dataset = TumDataset(root, cfg.camera, cfg.dataset)
     if dataset.groundtruth is None:
@@ -186,6 +190,10 @@ def run_long(
                 b.map_planes = len(slam.map.planes)
                 b.rss_main_mb = rss_mb()
                 b.rss_backend_mb = rss_mb(pid) if pid else 0.0
+                if blocks_path is not None:
+                    row = {k: v for k, v in b.row().items() if not k.startswith("update_ms")}
+                    with blocks_path.open("a", encoding="utf-8") as f:
+                        f.write(json.dumps(row) + "\n")
             bar.step()
 
         summary = run_frames(slam, dataset, range(len(dataset)), on_result)
@@ -215,7 +223,8 @@ def bench_long(
 ) -> LongRunResult:
     """`source`: a TUM folder (with associations.txt and groundtruth.txt) or the name of a
     built-in synthetic scene (rendered into OUT_DIR/data once). Builds the replay of
-    `passes` passes in OUT_DIR and runs it; writes OUT_DIR/long.md."""
+    `passes` passes in OUT_DIR and runs it; writes OUT_DIR/blocks.jsonl as the blocks end
+    (started afresh) and OUT_DIR/long.md at the end."""
     from planeslam.sim.render import SCENES, synthesize
 
     out_dir = Path(out_dir)
@@ -231,6 +240,8 @@ def bench_long(
             )
     frames_per_pass = len(TumDataset(folder, resolve_config(folder, config).camera))
     replay = replay_sequence(folder, out_dir / f"{folder.name}_{passes}pass", passes)
-    result = run_long(replay, frames_per_pass - 1, block, config, progress)
+    blocks_path = out_dir / "blocks.jsonl"
+    blocks_path.unlink(missing_ok=True)
+    result = run_long(replay, frames_per_pass - 1, block, config, progress, blocks_path)
     (out_dir / "long.md").write_text(result.to_text() + "\n", encoding="utf-8")
     return result
