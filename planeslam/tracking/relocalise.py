@@ -112,7 +112,8 @@ def relocalisation_candidates(
     if len(p_cam):  # the points' say, for the point pose and the best of the rest
         top = np.argsort(-scores, kind="stable")[: 8 * cfg.relocalise_candidates]
         top = np.union1d(top, [0])  # the point RANSAC pose comes first
-        scores[top] += _agreeing(poses[top], p_cam, matches.points_world, threshold) / 10.0
+        agreeing = agreeing_matches(poses[top], p_cam, matches.points_world, threshold)
+        scores[top] += np.count_nonzero(agreeing, axis=1) / 10.0
     distance = np.linalg.norm(poses[:, :3, 3] - T_pred[:3, 3], axis=1)
     order = np.lexsort((distance, -np.round(scores, 6)))
     order = _distinct(poses, order, cfg.relocalise_candidates)
@@ -131,13 +132,13 @@ def _points_decide(frame: FrameView, inliers: int, matches: int, cfg: TrackingCo
     )
 
 
-def _agreeing(
+def agreeing_matches(
     poses: np.ndarray, p_cam: np.ndarray, p_world: np.ndarray, threshold: np.ndarray
 ) -> np.ndarray:
-    """(H,) float: matches (camera (M, 3) -> world (M, 3)) within their (M,) thresholds
-    under each of the (H, 4, 4) poses."""
+    """(H, M) bool: the matches (camera (M, 3) -> world (M, 3)) within their (M,)
+    thresholds [m] under each of the (H, 4, 4) poses."""
     dist = np.linalg.norm(hypotheses.moved_points(poses, p_cam) - p_world[None], axis=2)
-    return np.count_nonzero(dist < threshold[None], axis=1).astype(np.float64)
+    return dist < threshold[None]
 
 
 def _distinct(poses: np.ndarray, order: np.ndarray, count: int) -> np.ndarray:

@@ -82,7 +82,7 @@ from planeslam.tracking.registration import (
     pose_from_planes_and_points,
     refine_icp,
 )
-from planeslam.tracking.relocalise import relocalisation_candidates
+from planeslam.tracking.relocalise import agreeing_matches, relocalisation_candidates
 from planeslam.tracking.views import FrameView, MapView
 
 if TYPE_CHECKING:
@@ -501,17 +501,18 @@ class Tracker:
 
     def _agreeing(self, T: np.ndarray, keypoints: Keypoints | None, matches: PointMatches) -> int:
         """Point matches within their inlier threshold under T (4, 4)."""
-        return int(np.count_nonzero(self._agreeing_mask(T, keypoints, matches)))
+        return int(np.count_nonzero(self._agreeing_masks(T[None], keypoints, matches)))
 
-    def _agreeing_mask(
-        self, T: np.ndarray, keypoints: Keypoints | None, matches: PointMatches
+    def _agreeing_masks(
+        self, poses: np.ndarray, keypoints: Keypoints | None, matches: PointMatches
     ) -> np.ndarray:
-        """(M,) bool: the point matches within their inlier threshold under T (4, 4)."""
+        """(H, M) bool: the point matches within their inlier threshold under each of the
+        (H, 4, 4) poses."""
         if keypoints is None or not len(matches):
-            return np.zeros(len(matches), dtype=bool)
+            return np.zeros((len(poses), len(matches)), dtype=bool)
         p_cam = keypoints.points_cam[matches.observed]
         threshold = inlier_threshold(p_cam, self.config.points, self.sensor)
-        return point_residuals(T, p_cam, matches.points_world) < threshold
+        return agreeing_matches(poses, p_cam, matches.points_world, threshold)
 
     def _joint_inliers(
         self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
@@ -601,11 +602,11 @@ class Tracker:
         ]
         if not solved:
             return None
+        agreeing = self._agreeing_masks(
+            np.array([s.T for s in solved]), keypoints, candidates.matches
+        )
         ranked = sorted(
-            (
-                _with_point_inliers(s, self._agreeing_mask(s.T, keypoints, candidates.matches))
-                for s in solved
-            ),
+            (_with_point_inliers(s, mask) for s, mask in zip(solved, agreeing, strict=True)),
             key=lambda pair: -pair[0].score,
         )
         best, best_points = ranked[0]
