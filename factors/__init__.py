@@ -39,6 +39,7 @@ _EXPORTS = {
     "point_on_plane_factor": ".point_on_plane",
     "pose_gate_sigmas": ".gating",
     "robust_plane_factor": ".plane_observation",
+    "same_plane_factor": ".plane_structure",
     "structural_factor": ".plane_structure",
 }
 """Public name -> the module (relative to this package) that defines it."""
@@ -60,6 +61,7 @@ __all__ = [
     "point_on_plane_factor",
     "pose_gate_sigmas",
     "robust_plane_factor",
+    "same_plane_factor",
     "structural_factor",
 ]
 
@@ -70,7 +72,12 @@ if TYPE_CHECKING:
     from .landmark_objects import LandmarkObject
     from .landmarks import AddedFactors, PlaneLandmarks
     from .plane_observation import measured_plane, plane_factor, robust_plane_factor
-    from .plane_structure import orthogonal_planes_factor, parallel_planes_factor, structural_factor
+    from .plane_structure import (
+        orthogonal_planes_factor,
+        parallel_planes_factor,
+        same_plane_factor,
+        structural_factor,
+    )
     from .point_on_plane import point_on_plane_factor
     from .recovery import RecoveringISAM2, UpdateOutcome
 

@@ -37,6 +37,11 @@ class LandmarkConfig:
     """Sigma of the structural factors [rad]."""
     point_on_plane_sigma_m: float = 0.01
     """Sigma of the distance of a corner landmark to each of its three planes [m]."""
+    same_plane_sigma_rad: float = 0.005
+    """Sigma of each normal component of the tie joining two landmarks of one plane
+    (`PlaneLandmarks.join_planes`) [rad]; robust under `robust_kernel`."""
+    same_plane_sigma_m: float = 0.005
+    """Sigma of the offset difference of that tie [m]."""
     use_structure: bool = True
     """Add orthogonality / parallelism factors between plane landmarks meeting at edges."""
     use_corners: bool = True
@@ -63,6 +68,8 @@ class LandmarkConfig:
             "corner_sigma_m",
             "structure_sigma_rad",
             "point_on_plane_sigma_m",
+            "same_plane_sigma_rad",
+            "same_plane_sigma_m",
             "associate_max_angle_deg",
             "associate_max_offset_m",
             "associate_max_corner_distance_m",

@@ -76,7 +76,7 @@ from .corner_observation import corner_factor
 from .gating import pose_covariance_matrix, pose_gate_sigmas
 from .landmark_objects import LandmarkObject, LandmarkObjectMap
 from .plane_observation import plane_factor, robust_plane_factor
-from .plane_structure import structural_factor
+from .plane_structure import same_plane_factor, structural_factor
 from .point_on_plane import point_on_plane_factor
 
 logger = logging.getLogger(__name__)
@@ -89,7 +89,7 @@ class AddedFactors:
     factors: tuple[gtsam.NonlinearFactor, ...]
     """Factors added to the graph, in the order added."""
     kinds: tuple[str, ...]
-    """Per factor: 'plane', 'corner', 'point_on_plane' or 'structure'."""
+    """Per factor: 'plane', 'corner', 'point_on_plane', 'structure' or 'same_plane'."""
     new_keys: tuple[int, ...]
     """gtsam keys of the landmark values inserted into `values`."""
     new_planes: tuple[int, ...]
@@ -134,6 +134,7 @@ class PlaneLandmarks:
         self._planes: dict[int, PlaneEstimate] = {}
         self._corners: dict[int, _Corner] = {}
         self._structure_pairs: set[tuple[int, int]] = set()
+        self._joined: dict[int, int] = {}  # landmark id -> the one it was joined into
         self._next_plane = 0
         self._next_corner = 0
         self._objects = LandmarkObjectMap(map_config, object_config, patterns)
@@ -195,6 +196,38 @@ class PlaneLandmarks:
         self._structure_pairs = {p for p in self._structure_pairs if not gone.intersection(p)}
         self._objects.forget(plane_ids, corner_ids)
 
+    def join_planes(
+        self, graph: gtsam.NonlinearFactorGraph, pairs: Iterable[tuple[int, int]]
+    ) -> AddedFactors:
+        """Tie plane landmarks found to be one plane: per (absorbed id, surviving id) a
+        `same_plane_factor` (sigmas `same_plane_sigma_*`, robust under `robust_kernel`)
+        into `graph`. The absorbed landmark keeps its value and factors, and `associate`
+        no longer offers it. Pairs naming a landmark without a value, or one landmark
+        twice, are skipped."""
+        cfg = self.config
+        factors = []
+        for gone, keep in pairs:
+            gone, keep = int(gone), int(keep)
+            if gone == keep or gone not in self._planes or keep not in self._planes:
+                continue
+            self._joined[gone] = keep
+            factor = same_plane_factor(
+                self.keys.plane(keep),
+                self.keys.plane(gone),
+                cfg.same_plane_sigma_rad,
+                cfg.same_plane_sigma_m,
+                cfg.robust_kernel,
+            )
+            graph.add(factor)
+            factors.append(factor)
+        return AddedFactors(
+            factors=tuple(factors),
+            kinds=("same_plane",) * len(factors),
+            new_keys=(),
+            new_planes=(),
+            new_corners=(),
+        )
+
     # ------------------------------------------------------------------ objects
 
     def objects(self) -> list[LandmarkObject]:
@@ -248,7 +281,7 @@ class PlaneLandmarks:
         planes = list(measurements.planes)
         corners = list(measurements.corners) if cfg.use_corners else []
         T = as_pose(T_world_cam_pred, "T_world_cam_pred")
-        map_ids = self.plane_ids
+        map_ids = [j for j in self.plane_ids if j not in self._joined]
         row_of = {j: r for r, j in enumerate(map_ids)}
         map_corner_ids = [
             k for k in self.corner_ids if all(j in row_of for j in self._corners[k].planes)

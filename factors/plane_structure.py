@@ -8,6 +8,13 @@ Parallelism, error (2,) [~rad near 0 or 180 deg]:
 
     e = B(n_a)^T n_b                                (|e| = sin of the angle)
 
+One plane seen as two landmarks, error (3,) [rad, rad, m]:
+
+    e = OrientedPlane3.errorVector(a, b)            (normal difference in the tangent
+                                                     plane of n_a, then d_b - d_a)
+
+the tie that joins two landmarks the map found to be one plane segment.
+
 B(n_a) is the (3, 2) Unit3 tangent basis at n_a (`Unit3.errorVector`), so e is n_b
 projected onto the tangent plane of n_a. |e| vanishes both when the normals agree
 and when they are opposite (two walls facing each other), and flipping n_b only
@@ -27,7 +34,7 @@ import numpy as np
 
 from planeslam.core.errors import ConfigError, GeometryError
 
-from ._noise import distinct_keys, isotropic_noise
+from ._noise import distinct_keys, isotropic_noise, robust_noise
 
 
 def _normal_pair_factor(
@@ -63,6 +70,35 @@ def orthogonal_planes_factor(key_a: int, key_b: int, sigma: float) -> gtsam.Cust
 def parallel_planes_factor(key_a: int, key_b: int, sigma: float) -> gtsam.CustomFactor:
     """Planes `key_a` and `key_b` are parallel (normals agreeing or opposite); sigma [rad]."""
     return _normal_pair_factor(key_a, key_b, sigma, "errorVector", 2)
+
+
+def same_plane_factor(
+    key_a: int, key_b: int, sigma_rad: float, sigma_m: float, loss: str | None = "huber"
+) -> gtsam.CustomFactor:
+    """Plane landmarks `key_a` and `key_b` are one plane (normals agreeing, same offset):
+    sigmas of each normal component [rad] and of the offset [m]; `loss` 'huber' or
+    'cauchy' makes it robust (a wrong tie then gives way), None keeps it Gaussian."""
+    key_a, key_b = distinct_keys(key_a, key_b)
+    for name, value in (("sigma_rad", sigma_rad), ("sigma_m", sigma_m)):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ConfigError(f"same_plane_factor {name}={value!r}: expected a finite number > 0")
+    gaussian = gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([sigma_rad, sigma_rad, sigma_m], dtype=np.float64)
+    )
+    noise = gaussian if loss is None else robust_noise(gaussian, loss, None)
+
+    def error(_: gtsam.CustomFactor, values: gtsam.Values, H: list | None) -> np.ndarray:
+        plane_a = values.atOrientedPlane3(key_a)
+        plane_b = values.atOrientedPlane3(key_b)
+        if H is None:
+            return np.asarray(plane_a.errorVector(plane_b))
+        H_a = np.zeros((3, 3), order="F")
+        H_b = np.zeros((3, 3), order="F")
+        e = plane_a.errorVector(plane_b, H_a, H_b)
+        H[0], H[1] = H_a, H_b
+        return np.asarray(e)
+
+    return gtsam.CustomFactor(noise, [key_a, key_b], error)
 
 
 def structural_factor(

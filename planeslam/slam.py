@@ -14,8 +14,10 @@ Every mapped frame (a keyframe) is merged into the plane-object map, then handed
 
 A keyframe's update is applied `lag_frames` frames later (or at the next keyframe): the
 keyframe takes its optimised pose, the planes and corners it saw move onto their
-landmarks, and the pose tracked since moves by the keyframe's correction. Every frame's
-pose is re-anchored on its final keyframe pose.
+landmarks, and the pose tracked since moves by the keyframe's correction; map planes that
+came to lie on one segment then merge (`Map.merge_same_segments`), and the next keyframe
+takes those joins to the graph. Every frame's pose is re-anchored on its final keyframe
+pose.
 
 `SLAM.process(depth_m, timestamp, rgb)` needs no dataset folder (live cameras, other
 sources); `run_frames` drives it over an `RgbdDataset` (folder or bag). Poses are
@@ -200,6 +202,9 @@ class SLAM:
         self._segment: Segment | None = None
         """The segment tracking since the last loss, until it joins the map."""
         self._pending: _PendingKeyframe | None = None
+        self._joined_planes: list[tuple[int, int]] = []
+        """(absorbed, surviving) map plane ids joined since the last keyframe went to the
+        backend, which ties them in the graph with the next one."""
         self.backend_result: BackendResult | None = None
         """What the backend reported at `finish`: update times, failures, factors."""
         self.pointcloud_bytes = 0
@@ -416,9 +421,11 @@ class SLAM:
         previous keyframe's update if it is still pending). Returns the frame's pose:
         corrected by that update, or with `lag_frames` 0 the backend's own."""
         T_world_cam = track.T_world_cam
+        moved: tuple[int, ...] = ()
         if self._pending:
             t0 = time.perf_counter()
-            correction = self._apply_update(self.backend.collect())
+            moved = self._pending.plane_ids
+            correction = self._apply_update(self.backend.collect(), merge_segments=False)
             T_world_cam = orthonormalize_pose(correction @ T_world_cam)
             stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
@@ -429,6 +436,7 @@ class SLAM:
             track.corner_pairs,
             reaggregate=self.backend.objects_every_keyframe,
         )
+        self._merge_same_segments(moved)  # after the frame's pairs, which may name them
         self._add_sparse_points(observation, T_world_cam, rgb)
         self._add_to_fused_cloud(observation, T_world_cam)
         stage_ms["map"] = 1e3 * (time.perf_counter() - t0)
@@ -445,8 +453,10 @@ class SLAM:
                 plane_ids=merged.planes,
                 corner_ids=merged.corners,
                 T_prev_cam=T_prev_cam,
+                joined_planes=tuple(self._joined_planes),
             )
         )
+        self._joined_planes = []
         self._set_keyframe_online(index, T_world_cam)
         self._pending = _PendingKeyframe(
             index, tuple(merged.planes.values()), tuple(merged.corners.values())
@@ -457,10 +467,14 @@ class SLAM:
         stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         return T_world_cam
 
-    def _apply_update(self, update: KeyframeUpdate, move_last_tracked: bool = True) -> np.ndarray:
+    def _apply_update(
+        self, update: KeyframeUpdate, move_last_tracked: bool = True, merge_segments: bool = True
+    ) -> np.ndarray:
         """The pending keyframe's update: its pose becomes the optimised one, and the planes
         and corners it saw move onto their landmarks (tracking uses them next; the whole
-        map and its objects are rebuilt in `finish`). Returns the correction (4, 4)
+        map and its objects are rebuilt in `finish`); with `merge_segments`, those planes
+        then merge with map planes they came to share a segment with
+        (`Map.merge_same_segments`). Returns the correction (4, 4)
         T_optimised @ T_online^-1, which also moves the last tracked pose (frames since the
         keyframe were tracked in the uncorrected map) unless told not to."""
         pending = self._pending
@@ -475,9 +489,17 @@ class SLAM:
         self.map.apply_estimates(
             update.planes, update.corners, pending.plane_ids, pending.corner_ids, reaggregate=False
         )
+        if merge_segments:
+            self._merge_same_segments(pending.plane_ids)
         if move_last_tracked and self._last_tracked is not None:
             self._last_tracked = orthonormalize_pose(correction @ self._last_tracked)
         return correction
+
+    def _merge_same_segments(self, plane_ids: Iterable[int]) -> None:
+        """`Map.merge_same_segments` on `plane_ids`; the joins go to the backend with the
+        next keyframe."""
+        absorbed = self.map.merge_same_segments(plane_ids)
+        self._joined_planes.extend(sorted(absorbed.items()))
 
     @property
     def fused_cloud_bytes(self) -> int:

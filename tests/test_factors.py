@@ -19,6 +19,7 @@ from planeslam.factors import (
     plane_factor,
     point_on_plane_factor,
     robust_plane_factor,
+    same_plane_factor,
     structural_factor,
 )
 
@@ -262,6 +263,44 @@ def test_structure_factors_numerical_jacobians_and_values(seed):
     for factor in (ortho, parallel):
         for H in analytic_jacobians(factor, values, [3, 3]):
             np.testing.assert_allclose(H[:, 2], 0.0, atol=1e-15)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_same_plane_factor_numerical_jacobians_and_values(seed):
+    rng = np.random.default_rng(seed)
+    plane_a = random_plane(rng)
+    plane_b = plane_a.retract(rng.normal(scale=0.05, size=3))
+    members = [(P0, plane_a), (P1, plane_b)]
+    factor = same_plane_factor(P0, P1, 1.0, 1.0, loss=None)
+    assert_jacobians_match(factor, members, [3, 3])
+    error = factor.unwhitenedError(values_of(*members))
+    np.testing.assert_allclose(error, plane_a.errorVector(plane_b), atol=1e-12)
+    assert np.linalg.norm(error) > 1e-3  # the two differ, and the error says so
+    assert factor.error(values_of((P0, plane_a), (P1, plane_a))) < 1e-20
+
+
+def test_same_plane_factor_joins_two_landmarks_between_their_observations():
+    # Two landmarks of one plane, each seen once (a plane factor per landmark at a fixed
+    # pose): the tie pulls each toward the other, to their covariance-weighted mean.
+    truth = gtsam.OrientedPlane3(0.0, 0.0, 1.0, 1.0)
+    lifted = gtsam.OrientedPlane3(0.0, 0.0, 1.0, 1.02)  # seen 2 cm off
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(gtsam.PriorFactorPose3(X0, gtsam.Pose3(), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
+    graph.add(plane_factor(truth.planeCoefficients(), 1e-4 * np.eye(3), X0, P0))
+    graph.add(plane_factor(lifted.planeCoefficients(), 1e-4 * np.eye(3), X0, P1))
+    graph.add(same_plane_factor(P0, P1, 1e-3, 1e-3, loss=None))
+    values = values_of((P0, truth), (P1, lifted))
+    values.insert(X0, gtsam.Pose3())
+    result = gtsam.GaussNewtonOptimizer(graph, values).optimize()
+    d0, d1 = result.atOrientedPlane3(P0).distance(), result.atOrientedPlane3(P1).distance()
+    assert abs(d0 - d1) < 1e-3 and d0 == pytest.approx(1.01, abs=1e-3)
+
+
+def test_same_plane_factor_rejects_bad_sigmas():
+    with pytest.raises(ConfigError, match="sigma_m"):
+        same_plane_factor(P0, P1, 0.01, 0.0)
+    with pytest.raises(ConfigError, match="distinct"):
+        same_plane_factor(P0, P0, 0.01, 0.01)
 
 
 @pytest.mark.parametrize("seed", SEEDS)

@@ -349,6 +349,32 @@ def test_associate_recovers_the_true_landmarks(circle):
     assert len(set(scene_of.values())) == len(scene_of)  # one landmark per scene plane
 
 
+def test_joined_landmarks_are_tied_and_only_the_survivor_is_associated(circle):
+    _, T_true, _, observations = circle
+    landmarks = PlaneLandmarks(LandmarkKeys())
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    first, second = observations[0], observations[1]
+    landmarks.add_observations(graph, values, 0, T_true[0], first, first.plane_truth)
+    # the second frame sees one scene plane as a new landmark (id 100): a duplicate
+    scene_plane = next(first.plane_truth[p.id] for p in second.planes if p.id in second.plane_truth)
+    duplicate = {
+        o: (100 if s == scene_plane else s)
+        for o, s in second.plane_truth.items()
+        if o in {p.id for p in second.planes}
+    }
+    landmarks.add_observations(graph, values, 1, T_true[1], second, duplicate)
+    size = graph.size()
+    joined = landmarks.join_planes(graph, [(100, scene_plane), (100, 100), (7777, scene_plane)])
+    assert joined.kinds == ("same_plane",) and graph.size() == size + 1
+    assert set(joined.factors[0].keys()) == {
+        LandmarkKeys().plane(100),
+        LandmarkKeys().plane(scene_plane),
+    }
+    plane_ids, _ = landmarks.associate(observations[2], T_true[2])
+    assert 100 not in plane_ids.values()
+    assert scene_plane in plane_ids.values()
+
+
 def test_bad_input_is_rejected(circle):
     _, T_true, _, observations = circle
     obs = observations[0]

@@ -51,6 +51,9 @@ class KeyframeInput:
     """Index in `measurements.corners` -> landmark (map corner) id."""
     T_prev_cam: np.ndarray | None
     """(4, 4) measured pose in the previous keyframe's camera frame; None for the first."""
+    joined_planes: tuple[tuple[int, int], ...] = ()
+    """(absorbed, surviving) map plane ids the map joined since the last keyframe
+    (`Map.merge_same_segments`): one plane, to be tied in the graph too."""
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,8 @@ frame [m]) from `planeslam.factors.PlaneLandmarks`. Factors per keyframe: a
 prior on the first, a BetweenFactorPose3 from the previous keyframe on every
 other one (so no pose is ever constrained by planes alone), and the landmark
 factors of its observation: its corners and the `max_planes_per_keyframe` of its planes
-that best fix its pose (`informative_planes`). One `ISAM2.update` per keyframe (plus
+that best fix its pose (`informative_planes`), and a tie between each two plane landmarks
+the map joined since the last keyframe. One `ISAM2.update` per keyframe (plus
 `extra_updates` relinearising iterations).
 
 An indeterminate system ("Indeterminate linear system", a RuntimeError from
@@ -105,6 +106,7 @@ class Isam2Backend:
         corner_ids: Mapping[int, int] | None = None,
         odometry_T_prev_cur: np.ndarray | None = None,
         odometry_sigmas: tuple[float, float] | np.ndarray | None = None,
+        joined_planes: Sequence[tuple[int, int]] = (),
     ) -> np.ndarray:
         """Add keyframe `index` with its measurements, update iSAM2 -> optimised T_world_cam (4, 4).
 
@@ -116,6 +118,8 @@ class Isam2Backend:
         this keyframe in the previous keyframe's camera frame; None derives it from
         the guess and the previous optimised pose. odometry_sigmas: (rot [rad],
         trans [m]) or (6,) sigmas (rotation first) overriding the config's.
+        joined_planes: (absorbed, surviving) plane landmark ids the map found to be one
+        plane since the last keyframe; each pair gets a tie (`PlaneLandmarks.join_planes`).
         """
         if isinstance(index, bool) or int(index) != index:
             raise ConfigError(f"keyframe index {index!r}: expected an integer")
@@ -161,10 +165,16 @@ class Isam2Backend:
             self._most_informative(measurements, plane_ids),
             corner_ids,
         )
+        joins = self.landmarks.join_planes(landmark_graph, joined_planes)
         pose_values = gtsam.Values()
         pose_values.insert(pose_key, gtsam.Pose3(T_guess))
         start = time.perf_counter()
-        added = dataclasses.replace(added, values=landmark_values)  # all it inserted
+        added = dataclasses.replace(
+            added,
+            factors=added.factors + joins.factors,
+            kinds=added.kinds + joins.kinds,
+            values=landmark_values,  # all it inserted
+        )
         self._smoother.update(pose_graph, pose_values, added, self.landmarks)
         self.update_ms.append((time.perf_counter() - start) * 1e3)
         self._timestamps[index] = float(timestamp)

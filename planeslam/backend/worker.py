@@ -219,6 +219,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             kf.plane_ids,
             kf.corner_ids,
             kf.T_prev_cam,
+            joined_planes=kf.joined_planes,
         )
         return KeyframeUpdate(
             index=kf.index,

@@ -50,6 +50,7 @@ def contents_to_dict(contents: MapContents) -> dict[str, Any]:
                 "scatter": _floats(p.scatter),
                 "num_points": int(p.num_points),
                 "observations": int(p.observations),
+                "seen_in": sorted(int(f) for f in p.seen_in),
             }
             for p in c.planes.values()
         ],
@@ -171,6 +172,7 @@ def _plane(p: Mapping[str, Any]) -> MapPlane:
         area_m2=float(p["area_m2"]),
         outline=np.asarray(p["outline"], dtype=np.float64).reshape(-1, 3),
         observations=int(p["observations"]),
+        seen_in=frozenset(int(f) for f in p.get("seen_in", ())),
     )
 
 

@@ -151,11 +151,12 @@ def _merge_planes(
                 area_m2=float(p.area_m2),
                 outline=outline_w,
                 observations=1,
+                seen_in=frozenset({contents.frames_merged}),
             )
         else:
             pid = target
             contents.planes[pid] = _refit_plane(
-                contents.planes[pid], int(p.num_points), c_w, S_w, outline_w
+                contents.planes[pid], int(p.num_points), c_w, S_w, outline_w, contents.frames_merged
             )
         to_map[k] = pid
     return to_map
@@ -230,8 +231,10 @@ def _refit_plane(
     centroid_w: np.ndarray,
     scatter_w: np.ndarray,
     outline_w: np.ndarray,
+    frame: int,
 ) -> MapPlane:
-    """Exact moment merge, refit, orient like the map normal, hull of both outlines."""
+    """Exact moment merge, refit, orient like the map normal, hull of both outlines; seen
+    in merge number `frame` too."""
     total, c, S = merge_moments(
         np.array([old.num_points, count]),
         np.stack([old.centroid, centroid_w]),
@@ -252,6 +255,7 @@ def _refit_plane(
         area_m2=area,
         outline=outline,
         observations=old.observations + 1,
+        seen_in=old.seen_in | {frame},
     )
 
 

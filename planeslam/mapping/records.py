@@ -32,6 +32,9 @@ class MapPlane:
     """(M, 3) polygon on the plane, world frame [m]; the convex hull once merged."""
     observations: int
     """Frames that observed it."""
+    seen_in: frozenset[int] = frozenset()
+    """Merge numbers (`MapContents.frames_merged` before each merge) of the frames that
+    observed it: two planes seen apart in one frame are two segments."""
 
 
 @dataclass(frozen=True, eq=False)

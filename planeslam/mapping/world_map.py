@@ -35,10 +35,12 @@ from planeslam.frontend.objects import DEFAULT_PATTERNS, ObjectPattern
 from planeslam.mapping import json_io, memory, ply_export, reaggregation
 from planeslam.mapping.config import MapConfig
 from planeslam.mapping.contents import MapContents
+from planeslam.mapping.culling import cull_single_view
 from planeslam.mapping.geometry_update import update_geometry
 from planeslam.mapping.gravity import UpOrigin, UpSource
 from planeslam.mapping.merge import MergeResult, merge_frame
 from planeslam.mapping.records import MapCorner, MapEdge, MapObject, MapPlane
+from planeslam.mapping.segment_merge import merge_same_segments
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -185,6 +187,7 @@ class Map:
         unknown indices / ids or pairing one plane twice.
         """
         merged = merge_frame(self._contents, observation, T_world_cam, plane_pairs, corner_pairs)
+        cull_single_view(self._contents, self.config.cull_single_view_after)
         self._revision += 1
         if reaggregate:
             self.reaggregate()
@@ -249,6 +252,17 @@ class Map:
                 if np.max(np.abs(point - old_corner.point)) > min_change:
                     moved_corners[cid] = point
         self.update_geometry(moved_planes, moved_corners, reaggregate=reaggregate)
+
+    def merge_same_segments(self, plane_ids: Iterable[int]) -> dict[int, int]:
+        """Merge each plane of `plane_ids` with a map plane it came to share a segment with
+        (`segment_merge`; nothing when `map.merge_segments` is off); {absorbed plane id:
+        surviving plane id}. Objects follow at the next `reaggregate`."""
+        if not self.config.merge_segments:
+            return {}
+        absorbed = merge_same_segments(self._contents, plane_ids)
+        if absorbed:
+            self._revision += 1
+        return absorbed
 
     def add_sparse_points(self, points_world: np.ndarray, colors: np.ndarray | None = None) -> None:
         """Add (N, 3) world points [m] (and (N, 3) uint8 colours) to the voxelised sparse cloud.

@@ -1,0 +1,37 @@
+"""Planes only their first frame saw leave the map after `cull_single_view_after` more
+frames, with their edges and corners; planes seen twice, or recently, stay."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from test_segment_merge import contents_with, edge, patch
+
+from planeslam.core.errors import ConfigError
+from planeslam.mapping.config import MapConfig
+from planeslam.mapping.culling import cull_single_view
+from planeslam.mapping.records import MapCorner
+
+
+def test_single_view_planes_leave_after_the_given_frames_with_their_edges_and_corners():
+    floor = replace(patch(0, [0, 0, 0], [1, 0, 0], [0, 1, 0], 2), seen_in=frozenset({0, 5}))
+    wall = replace(patch(1, [0, 0, 0], [0, 0, 1], [1, 0, 0], 1), seen_in=frozenset({2}))
+    side = replace(patch(2, [0, 0, 0], [0, 1, 0], [0, 0, 1], 1), seen_in=frozenset({9}))
+    legacy = patch(3, [3, 0, 0], [0, 1, 0], [0, 0, 1], 1)  # loaded from an older map file
+    contents = contents_with(floor, wall, side, legacy)
+    contents.edges = {(0, 1): edge(0, 1, 0.0, 1.0), (0, 2): edge(0, 2, 0.0, 1.0)}
+    contents.corners = {4: MapCorner(4, (0, 1, 2), np.zeros(3), 0, 1)}
+    contents.frames_merged = 12  # merge numbers 0..11 done
+    assert cull_single_view(contents, 0) == []  # off
+    assert cull_single_view(contents, 10) == []  # the wall's frame 2 is 9 frames back
+    contents.frames_merged = 13
+    assert cull_single_view(contents, 10) == [1]
+    assert sorted(contents.planes) == [0, 2, 3]
+    assert list(contents.edges) == [(0, 2)] and contents.corners == {}
+
+
+def test_cull_setting_is_checked():
+    with pytest.raises(ConfigError, match="cull_single_view_after"):
+        MapConfig(cull_single_view_after=-1)
