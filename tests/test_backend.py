@@ -185,15 +185,16 @@ def test_loop_closes_through_associated_landmarks(room_loop):
     assert translation_rmse(T_opt, T_true) < 0.007
 
 
-def test_joined_duplicate_landmarks_close_the_loop(room_loop):
+def test_tied_duplicate_landmarks_close_the_loop(room_loop):
     """The loop's last ten keyframes see every plane as a new landmark (association missed
     the revisit): no loop closes. Joining those duplicates to the first landmarks
-    (`joined_planes`, as the map's segment merge sends them) closes it."""
+    (`joined_planes`, as the map's segment merge sends them) closes it when the backend
+    ties them (`tie_joined_planes`, the default), not when told not to."""
     scene, T_true, odometry, observations = room_loop
     late = len(T_true) - 10
     poses = {}
     for join in (False, True):
-        backend = Isam2Backend(backend_config())
+        backend = Isam2Backend(dataclasses.replace(backend_config(), tie_joined_planes=join))
         T_prev, seen = T_true[0], set()
         for i, obs in enumerate(observations):
             offset = 1000 if i >= late else 0
@@ -201,7 +202,7 @@ def test_joined_duplicate_landmarks_close_the_loop(room_loop):
             if i < late:
                 seen |= set(plane_ids.values())
             joined = ()
-            if join and i == late + 5:  # after the duplicates exist
+            if i == late + 5:  # after the duplicates exist
                 duplicates = set(backend.plane_estimates()) - seen
                 joined = tuple((j, j - 1000) for j in sorted(duplicates) if j - 1000 in seen)
                 assert joined
@@ -218,8 +219,8 @@ def test_joined_duplicate_landmarks_close_the_loop(room_loop):
             )
         poses[join] = np.array([T for _, T in backend.keyframe_poses().values()])
     end_error = {j: np.linalg.norm(poses[j][-1, :3, 3] - T_true[-1, :3, 3]) for j in poses}
-    # measured: 1.4 cm without the joins, 0.7 cm with them
-    assert end_error[False] > 0.01, "without the joins the loop must stay open"
+    # measured: 1.4 cm without the ties, 0.7 cm with them
+    assert end_error[False] > 0.01, "without the ties the loop must stay open"
     assert end_error[True] < 0.008 and end_error[True] < end_error[False] / 1.8, end_error
 
 

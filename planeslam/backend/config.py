@@ -42,6 +42,15 @@ class BackendConfig:
     (about 21 planes per keyframe) 8 cut the update median in the fifth pass from 905 to
     130 ms and the backend's peak memory from 1186 to 294 MiB, but moved the ATE of
     single runs by -0.6 to +4.4 cm (README, "Long runs"), so it is not the default."""
+    tie_joined_planes: bool = True
+    """Tie two plane landmarks the map merged into one (`KeyframeInput.joined_planes`) with a
+    `same_plane_factor` (sigmas `landmarks.same_plane_sigma_*`), so that the graph, like the
+    map, holds one plane. Measured on 7-Scenes (2026-12-01): without the ties the five-pass
+    replay went wrong in its third pass (94 and 109 keyframes in the third and fourth 1,000
+    frames against 68 and 46 with them, 1,225 planes after four passes against 988, 4.8
+    against 11.7 fps); with them the wide baselines lost about a centimetre (every 10th /
+    20th / 30th frame 5.37 / 3.50 / 4.47 cm against 4.12 / 2.92 / 3.27 without) and the
+    30 Hz run stayed as it was (4.94 against 4.99 cm)."""
     keys: LandmarkKeys = field(default_factory=LandmarkKeys)
     """Symbol characters of poses, plane and corner landmarks."""
     landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)

@@ -7,7 +7,7 @@ prior on the first, a BetweenFactorPose3 from the previous keyframe on every
 other one (so no pose is ever constrained by planes alone), and the landmark
 factors of its observation: its corners and the `max_planes_per_keyframe` of its planes
 that best fix its pose (`informative_planes`), and a tie between each two plane landmarks
-the map joined since the last keyframe. One `ISAM2.update` per keyframe (plus
+the map joined since the last keyframe (`tie_joined_planes`). One `ISAM2.update` per keyframe (plus
 `extra_updates` relinearising iterations).
 
 An indeterminate system ("Indeterminate linear system", a RuntimeError from
@@ -119,7 +119,8 @@ class Isam2Backend:
         the guess and the previous optimised pose. odometry_sigmas: (rot [rad],
         trans [m]) or (6,) sigmas (rotation first) overriding the config's.
         joined_planes: (absorbed, surviving) plane landmark ids the map found to be one
-        plane since the last keyframe; each pair gets a tie (`PlaneLandmarks.join_planes`).
+        plane since the last keyframe; with `tie_joined_planes` each pair gets a tie
+        (`PlaneLandmarks.join_planes`).
         """
         if isinstance(index, bool) or int(index) != index:
             raise ConfigError(f"keyframe index {index!r}: expected an integer")
@@ -165,7 +166,9 @@ class Isam2Backend:
             self._most_informative(measurements, plane_ids),
             corner_ids,
         )
-        joins = self.landmarks.join_planes(landmark_graph, joined_planes)
+        joins = self.landmarks.join_planes(
+            landmark_graph, joined_planes if self.config.tie_joined_planes else ()
+        )
         pose_values = gtsam.Values()
         pose_values.insert(pose_key, gtsam.Pose3(T_guess))
         start = time.perf_counter()
