@@ -140,14 +140,21 @@ def test_a_plane_joins_only_within_its_own_fit_uncertainty() -> None:
 
 
 @pytest.mark.integration
-def test_bench_long_reports_blocks_passes_memory_and_ate(tmp_path: Path) -> None:
+@pytest.mark.parametrize("merge_segments", [False, True])
+def test_bench_long_reports_blocks_passes_memory_and_ate(
+    tmp_path: Path, merge_segments: bool
+) -> None:
     from planeslam.app.bench_long import run_long
     from planeslam.sim.render import synthesize
 
     source = synthesize("box_room_circle", tmp_path / "src", seed=0).out_dir  # 24 views
     replay = replay_sequence(source, tmp_path / "replay", passes=2)
     blocks_path = tmp_path / "blocks.jsonl"
-    result = run_long(replay, frames_per_pass=23, block=20, blocks_path=blocks_path)
+    config = None
+    if merge_segments:  # the segment merge and the graph's ties on, as README measures them
+        config = tmp_path / "merge.yaml"
+        config.write_text("map:\n  merge_segments: true\n")
+    result = run_long(replay, frames_per_pass=23, block=20, config=config, blocks_path=blocks_path)
     assert result.frames == 47
     assert [b["frames"] for b in result.blocks] == ["0-19", "20-39", "40-46"]
     written = [json.loads(line) for line in blocks_path.read_text().splitlines()]

@@ -47,13 +47,18 @@ class MapConfig:
     cull_single_view_after: int = 0
     """N > 0: a plane that only the frame which made it has seen leaves the map (with its
     edges and corners) when N more frames have been merged without seeing it again
-    (`culling`); 0 keeps every plane. Off by default: with 10 the single 7-Scenes pass
-    keeps 392 planes instead of 704 at the same ATE, but a revisit sees the culled
-    clutter again as new planes and makes keyframes of it (203 in the second pass
-    instead of 85; README, "Long runs")."""
-    merge_segments: bool = True
+    (`culling`); 0 keeps every plane. Off by default: with 10 (and `merge_segments`) the
+    single 7-Scenes pass keeps 392 planes instead of 704 (ATE 4.1 against 4.9 cm), but a
+    revisit sees the culled clutter again as new planes and makes keyframes of it (203 in
+    the second pass instead of 85; README, "Long runs")."""
+    merge_segments: bool = False
     """After the backend moved a keyframe's planes, a map plane that came to lie on another
-    one's segment (outlines as above) is merged into it (`segment_merge`) ..."""
+    one's segment (outlines as above) is merged into it (`segment_merge`) ... Off by
+    default: on the five-pass 7-Scenes replay it keeps 1,008 planes instead of 1,362 and
+    the ATE at 5.5 instead of 6.8 cm, but single runs drift more in absolute orientation
+    (7-Scenes: 21 of every 10th frame within 5 cm / 3 deg of the truth against 43, so
+    relocalisation in its map places 22 against 51) and lose about a centimetre at wide
+    baselines (README, "Long runs")."""
     merge_segments_max_angle_deg: float = 2.0
     """... when their normals are within this [deg] ..."""
     merge_segments_max_offset_m: float = 0.02
