@@ -134,7 +134,7 @@ class PlaneLandmarks:
         self._planes: dict[int, PlaneEstimate] = {}
         self._corners: dict[int, _Corner] = {}
         self._structure_pairs: set[tuple[int, int]] = set()
-        self._joined: dict[int, int] = {}  # landmark id -> the one it was joined into
+        self._joined: set[int] = set()  # landmarks joined into another one
         self._next_plane = 0
         self._next_corner = 0
         self._objects = LandmarkObjectMap(map_config, object_config, patterns)
@@ -210,7 +210,7 @@ class PlaneLandmarks:
             gone, keep = int(gone), int(keep)
             if gone == keep or gone not in self._planes or keep not in self._planes:
                 continue
-            self._joined[gone] = keep
+            self._joined.add(gone)
             factor = same_plane_factor(
                 self.keys.plane(keep),
                 self.keys.plane(gone),

@@ -7,8 +7,8 @@ prior on the first, a BetweenFactorPose3 from the previous keyframe on every
 other one (so no pose is ever constrained by planes alone), and the landmark
 factors of its observation: its corners and the `max_planes_per_keyframe` of its planes
 that best fix its pose (`informative_planes`), and a tie between each two plane landmarks
-the map joined since the last keyframe (`tie_joined_planes`). One `ISAM2.update` per keyframe (plus
-`extra_updates` relinearising iterations).
+the map joined since the last keyframe (`tie_joined_planes`). One `ISAM2.update` per
+keyframe (plus `extra_updates` relinearising iterations).
 
 An indeterminate system ("Indeterminate linear system", a RuntimeError from
 gtsam) never escapes: `planeslam.factors.recovery.RecoveringISAM2` rebuilds iSAM2

@@ -30,9 +30,6 @@ import numpy as np
 from planeslam.core.errors import AssociationError, MapError
 from planeslam.core.geometry import (
     as_pose,
-    convex_hull_2d,
-    convex_polygon_gap,
-    plane_basis,
     tangent_basis,
     transform_plane,
     unit,
@@ -42,7 +39,7 @@ from planeslam.frontend.types import Plane
 from planeslam.mapping.contents import MapContents
 from planeslam.mapping.gravity import UpSource
 from planeslam.mapping.records import MapCorner, MapEdge, MapPlane
-from planeslam.mapping.seating import hull_on_plane, reseat_edges
+from planeslam.mapping.seating import hull_on_plane, outline_gap, reseat_edges
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -198,11 +195,7 @@ def _same_plane_segment(
     best, best_gap = None, cfg.consolidate_max_gap_m
     for row in rows:
         candidate = contents.planes[int(ids[row])]
-        axes, foot = plane_basis(candidate.normal), -candidate.d * candidate.normal
-        gap = convex_polygon_gap(
-            convex_hull_2d((candidate.outline - foot) @ axes.T),
-            convex_hull_2d((outline_w - foot) @ axes.T),
-        )
+        gap = outline_gap(candidate.outline, outline_w, candidate.normal, candidate.d)
         if gap <= best_gap:
             best, best_gap = int(ids[row]), gap
     return best

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from planeslam.core.geometry import convex_hull_2d, plane_basis, polygon_area
+from planeslam.core.geometry import convex_hull_2d, convex_polygon_gap, plane_basis, polygon_area
 from planeslam.mapping.contents import MapContents
 
 
@@ -27,6 +27,15 @@ def hull_on_plane(points: np.ndarray, n: np.ndarray, d: float) -> tuple[np.ndarr
     if len(ring) == 0:
         return project_to_plane(points, n, d), 0.0
     return foot + ring @ axes, polygon_area(ring)
+
+
+def outline_gap(outline_a: np.ndarray, outline_b: np.ndarray, n: np.ndarray, d: float) -> float:
+    """Gap [m] between the convex hulls of two outlines ((K, 3), world frame) projected onto
+    the plane (unit n, d); 0 when they overlap."""
+    axes, foot = plane_basis(n), -d * n
+    return convex_polygon_gap(
+        convex_hull_2d((outline_a - foot) @ axes.T), convex_hull_2d((outline_b - foot) @ axes.T)
+    )
 
 
 def seat_segments(

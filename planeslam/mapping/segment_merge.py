@@ -23,11 +23,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from planeslam.core.geometry import convex_hull_2d, convex_polygon_gap, plane_basis
 from planeslam.core.plane_fit import merge_moments
 from planeslam.mapping.contents import MapContents
 from planeslam.mapping.records import MapEdge, MapPlane
-from planeslam.mapping.seating import hull_on_plane, project_to_plane, reseat_edges
+from planeslam.mapping.seating import hull_on_plane, outline_gap, project_to_plane, reseat_edges
 
 
 def merge_same_segments(contents: MapContents, plane_ids: Iterable[int]) -> dict[int, int]:
@@ -84,14 +83,12 @@ def _same_segment(
     )
     if not close.any():
         return None
-    axes, foot = plane_basis(plane.normal), -plane.d * plane.normal
-    hull = convex_hull_2d((plane.outline - foot) @ axes.T)
     best, best_gap = None, cfg.consolidate_max_gap_m
     for pid in ids[close]:
         other = contents.planes[int(pid)]
         if other.seen_in & plane.seen_in:
             continue
-        gap = convex_polygon_gap(hull, convex_hull_2d((other.outline - foot) @ axes.T))
+        gap = outline_gap(plane.outline, other.outline, plane.normal, plane.d)
         if gap <= best_gap:
             best, best_gap = other, gap
     return best
@@ -125,11 +122,10 @@ def _absorb(contents: MapContents, keep: MapPlane, gone: MapPlane) -> None:
         existing = contents.edges.get(new_key)
         contents.edges[new_key] = _joined_edge(new_key, edge, existing)
     reseat_edges(contents, {keep.id})
-    by_triple = {c.planes: c.id for c in contents.corners.values()}
-    for cid, corner in list(contents.corners.items()):
-        if gone.id not in corner.planes:
-            continue
-        del contents.corners[cid]
+    on_gone = [cid for cid, c in contents.corners.items() if gone.id in c.planes]
+    by_triple = {c.planes: c.id for c in contents.corners.values()} if on_gone else {}
+    for cid in on_gone:
+        corner = contents.corners.pop(cid)
         triple = tuple(sorted(keep.id if p == gone.id else p for p in corner.planes))
         if len(set(triple)) < 3:
             continue
