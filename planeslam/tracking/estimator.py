@@ -360,8 +360,10 @@ def constraints(
     (each on its own information), and what nothing constrains."""
     info = estimate.information
     H_planes = info.get(Primitive.PLANES, np.zeros((6, 6)))
-    rot_floor = 1.0 / thresholds.max_sigma_rad**2
-    trans_floor = 1.0 / thresholds.max_sigma_m**2
+    # A sigma at the threshold is within it: 1e-9 relative slack for rounding (one line
+    # end at `line_sigma_m` gives exactly the translation floor).
+    rot_floor = (1.0 - 1e-9) / thresholds.max_sigma_rad**2
+    trans_floor = (1.0 - 1e-9) / thresholds.max_sigma_m**2
     r_rank, r_free = _block_rank(H_planes[:3, :3], thresholds.plane_rank_ratio)
     t_rank, t_free = _block_rank(H_planes[3:, 3:], thresholds.plane_rank_ratio)
     filled: list[Primitive] = []
