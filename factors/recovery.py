@@ -112,6 +112,19 @@ class RecoveringISAM2:
         self._estimate = estimate
         self._isam = self._theta = None
 
+    def restart(self, graph: gtsam.NonlinearFactorGraph, estimate: gtsam.Values) -> None:
+        """Hold only `graph` at `estimate` from now on (a fresh iSAM2 over them, e.g. a
+        sliding window of a larger graph). RuntimeError, with the smoother as it was,
+        when `graph` is indeterminate."""
+        previous = (self.graph, self._estimate)
+        self.graph, self._estimate = graph, estimate
+        try:
+            self.rebuild()
+        except RuntimeError:
+            self.graph, self._estimate = previous
+            self.rebuild()
+            raise
+
     def rebuild(self) -> None:
         """A fresh iSAM2 from the committed factors, linearised at the last estimate."""
         self._isam, self._theta = new_isam2(self.params)

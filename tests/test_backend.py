@@ -224,6 +224,52 @@ def test_tied_duplicate_landmarks_close_the_loop(room_loop):
     assert end_error[True] < 0.008 and end_error[True] < end_error[False] / 1.8, end_error
 
 
+def test_a_sliding_window_closes_the_loop_and_bounds_the_smoother(room_loop):
+    """With `window_keyframes` 6, iSAM2 holds 6 to 9 keyframes; the loop's end observes
+    landmarks the window lost long before, which come back with what the held graph says
+    of them, so the end pose is as good online as with the whole graph. The final batch
+    over the whole graph lands where the whole graph's does."""
+    scene, T_true, odometry, observations = room_loop
+    results = {}
+    for window in (0, 6):
+        backend = Isam2Backend(dataclasses.replace(backend_config(), window_keyframes=window))
+        online = []
+        T_prev = T_true[0]
+        for i, obs in enumerate(observations):
+            T_guess = T_prev if i == 0 else T_prev @ odometry[i - 1]
+            T_prev = backend.add_keyframe(
+                i,
+                obs.timestamp,
+                T_guess,
+                obs,
+                obs.plane_truth,
+                obs.corner_truth,
+                None if i == 0 else odometry[i - 1],
+            )
+            online.append(T_prev)
+            if window:
+                assert backend.window_size <= window + window // 2
+        assert backend.failures == 0
+        assert backend.num_factors > 0 and len(backend.keyframe_poses()) == len(T_true)
+        backend.optimize_batch()
+        final = np.array([T for _, T in backend.keyframe_poses().values()])
+        results[window] = (np.array(online), final, backend.plane_estimates())
+    (online_all, final_all, planes_all), (online_win, final_win, planes_win) = (
+        results[0],
+        results[6],
+    )
+    T_odom = dead_reckoning(T_true[0], odometry)
+    assert np.linalg.norm(T_odom[-1, :3, 3] - T_true[-1, :3, 3]) > 0.03
+    # online: the window's last pose closes the loop through the landmarks taken back
+    assert_pose_close(online_win[-1], T_true[-1], 0.01, 0.5)
+    assert_pose_close(online_all[-1], T_true[-1], 0.01, 0.5)
+    # final: the whole graph from either estimate
+    assert translation_rmse(final_win, T_true) < 0.007
+    for T_w, T_a in zip(final_win, final_all, strict=True):
+        assert_pose_close(T_w, T_a, 0.002, 0.1)
+    assert set(planes_win) == set(planes_all)
+
+
 def one_plane_observation(scene, T_world_cam, plane_index: int) -> Observed:
     full = observe(scene, T_world_cam, np.random.default_rng(0))
     plane = next(p for p in full.planes if full.plane_truth[p.id] == plane_index)

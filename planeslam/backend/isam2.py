@@ -10,6 +10,11 @@ that best fix its pose (`informative_planes`), and a tie between each two plane 
 the map joined since the last keyframe (`tie_joined_planes`). One `ISAM2.update` per
 keyframe (plus `extra_updates` relinearising iterations).
 
+With `window_keyframes` N > 0, iSAM2 holds only the last N to 1.5 N keyframes and what
+they observe; the rest of the graph is held at its estimate (`planeslam.backend.window`),
+and a landmark the window lost is taken back in when a keyframe observes it again. The
+final batch optimisation (`optimize_batch`) runs over the whole graph either way.
+
 An indeterminate system ("Indeterminate linear system", a RuntimeError from
 gtsam) never escapes: `planeslam.factors.recovery.RecoveringISAM2` rebuilds iSAM2
 (it is not exception safe) from the committed factors and the last estimate, drops
@@ -28,10 +33,11 @@ import gtsam
 import numpy as np
 
 from planeslam.backend.config import BackendConfig
+from planeslam.backend.window import FactorHistory, split_factors
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import as_pose, invert_pose
 from planeslam.core.types import FrameMeasurements, PlaneEstimate, PlaneMeasurement
-from planeslam.factors.landmarks import PlaneLandmarks
+from planeslam.factors.landmarks import AddedFactors, PlaneLandmarks
 from planeslam.factors.recovery import RecoveringISAM2, new_isam2
 
 logger = logging.getLogger(__name__)
@@ -48,6 +54,8 @@ class Isam2Backend:
         params.setRelinearizeThreshold(self.config.relinearize_threshold)
         params.relinearizeSkip = self.config.relinearize_skip
         self._smoother = RecoveringISAM2(params, self.config.extra_updates)
+        self._history = FactorHistory(self.keys)
+        self._window: list[int] = []  # keyframe indices whose poses iSAM2 holds
         self._timestamps: dict[int, float] = {}
         self._last_index: int | None = None
         self.update_ms: list[float] = []
@@ -62,12 +70,18 @@ class Isam2Backend:
 
     @property
     def _estimate(self) -> gtsam.Values:
-        return self._smoother.estimate
+        """The last estimate of every variable (not a copy)."""
+        return self._history.estimate
 
     @property
     def _graph(self) -> gtsam.NonlinearFactorGraph:
         """Every committed factor."""
-        return self._smoother.graph
+        return self._history.graph
+
+    @property
+    def window_size(self) -> int:
+        """Keyframes whose poses iSAM2 holds now (all with `window_keyframes` 0)."""
+        return len(self._window)
 
     @property
     def num_factors(self) -> int:
@@ -178,11 +192,69 @@ class Isam2Backend:
             kinds=added.kinds + joins.kinds,
             values=landmark_values,  # all it inserted
         )
-        self._smoother.update(pose_graph, pose_values, added, self.landmarks)
+        own = [pose_graph.at(i) for i in range(pose_graph.size())]
+        update_graph, update_values = self._taken_back(pose_graph, pose_values, added)
+        outcome = self._smoother.update(update_graph, update_values, added, self.landmarks)
+        self._history.add(own + list(outcome.factors[update_graph.size() :]))
+        self._history.take_estimate(self._smoother.estimate)
+        self._window.append(index)
+        limit = self.config.window_keyframes
+        if limit and len(self._window) > limit + max(1, limit // 2):
+            self._slide_window()
         self.update_ms.append((time.perf_counter() - start) * 1e3)
         self._timestamps[index] = float(timestamp)
         self._last_index = index
         return self._estimate.atPose3(pose_key).matrix()
+
+    def _taken_back(
+        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, added: AddedFactors
+    ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """`graph` and `values` with the landmarks the new factors observe again after the
+        window lost them: each at its estimate, with what the held rest of the graph says
+        about it (`FactorHistory.conditioned`). Unchanged without a window."""
+        if not self.config.window_keyframes:
+            return graph, values
+        held = {
+            key
+            for factor in list(added.factors) + [graph.at(i) for i in range(graph.size())]
+            for key in factor.keys()
+            if not values.exists(key)
+            and not added.values.exists(key)
+            and not self._smoother.estimate.exists(key)
+        }
+        if not held:
+            return graph, values
+        whole, conditioned = split_factors(
+            self._history.factors_of(held), held, set(self._smoother.estimate.keys())
+        )
+        graph = gtsam.NonlinearFactorGraph(graph)
+        for factor in whole + self._history.conditioned(conditioned, held):
+            graph.add(factor)
+        values = gtsam.Values(values)
+        values.insert(self._history.values_of(held))
+        return graph, values
+
+    def _slide_window(self) -> None:
+        """Restart iSAM2 on the last `window_keyframes` keyframes: their poses, the landmarks
+        they observe and the factors among these, with the rest held (`split_factors`)."""
+        window = self._window[-self.config.window_keyframes :]
+        poses = {self.keys.pose(i) for i in window}
+        pose_char = ord(self.keys.pose_char)
+        free = {
+            key
+            for key in self._history.neighbours(poses)
+            if key in poses or gtsam.Symbol(key).chr() != pose_char
+        }
+        whole, conditioned = split_factors(self._history.factors_of(free), free)
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in whole + self._history.conditioned(conditioned, free):
+            graph.add(factor)
+        try:
+            self._smoother.restart(graph, self._history.values_of(free))
+        except RuntimeError as exc:  # keep the larger window; try again next keyframe
+            logger.warning("window not moved: %s", " ".join(str(exc).split())[:160])
+            return
+        self._window = window
 
     def _most_informative(
         self, measurements: FrameMeasurements, plane_ids: Mapping[int, int]
@@ -239,8 +311,12 @@ class Isam2Backend:
         except RuntimeError as exc:  # an indeterminate batch keeps the iSAM2 estimate
             logger.warning("batch optimisation failed (%s); keeping the iSAM2 estimate", exc)
             return (time.perf_counter() - start) * 1e3
-        self._smoother.set_estimate(estimate)  # rebuilt there if another keyframe comes
+        self._history.take_estimate(estimate)
         self.landmarks.update_estimates(estimate)
+        if self.config.window_keyframes:
+            self._slide_window()  # relinearised at the new estimate
+        else:
+            self._smoother.set_estimate(estimate)  # rebuilt there if another keyframe comes
         return (time.perf_counter() - start) * 1e3
 
 
