@@ -140,9 +140,20 @@ def test_a_plane_joins_only_within_its_own_fit_uncertainty() -> None:
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("merge_segments", [False, True])
+@pytest.mark.parametrize(
+    "config_text",
+    [
+        None,
+        # the segment merge and the graph's ties on, as README measures them
+        "map:\n  merge_segments: true\n",
+        # a window of 6 keyframes: iSAM2 slides every few keyframes of the first pass, and
+        # the second pass observes landmarks the window lost, all in the backend process
+        "backend:\n  window_keyframes: 6\n",
+    ],
+    ids=["default", "merge_segments", "window_6"],
+)
 def test_bench_long_reports_blocks_passes_memory_and_ate(
-    tmp_path: Path, merge_segments: bool
+    tmp_path: Path, config_text: str | None
 ) -> None:
     from planeslam.app.bench_long import run_long
     from planeslam.sim.render import synthesize
@@ -151,9 +162,9 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(
     replay = replay_sequence(source, tmp_path / "replay", passes=2)
     blocks_path = tmp_path / "blocks.jsonl"
     config = None
-    if merge_segments:  # the segment merge and the graph's ties on, as README measures them
-        config = tmp_path / "merge.yaml"
-        config.write_text("map:\n  merge_segments: true\n")
+    if config_text is not None:
+        config = tmp_path / "config.yaml"
+        config.write_text(config_text)
     result = run_long(replay, frames_per_pass=23, block=20, config=config, blocks_path=blocks_path)
     assert result.frames == 47
     assert [b["frames"] for b in result.blocks] == ["0-19", "20-39", "40-46"]
