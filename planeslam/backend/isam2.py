@@ -193,7 +193,10 @@ class Isam2Backend:
             values=landmark_values,  # all it inserted
         )
         own = [pose_graph.at(i) for i in range(pose_graph.size())]
-        update_graph, update_values = self._taken_back(pose_graph, pose_values, added)
+        taken_back, update_values = self._taken_back(own, pose_values, added)
+        update_graph = gtsam.NonlinearFactorGraph()
+        for factor in own + taken_back:
+            update_graph.add(factor)
         outcome = self._smoother.update(update_graph, update_values, added, self.landmarks)
         self._history.add(own + list(outcome.factors[update_graph.size() :]))
         self._history.take_estimate(self._smoother.estimate)
@@ -207,32 +210,30 @@ class Isam2Backend:
         return self._estimate.atPose3(pose_key).matrix()
 
     def _taken_back(
-        self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, added: AddedFactors
-    ) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
-        """`graph` and `values` with the landmarks the new factors observe again after the
-        window lost them: each at its estimate, with what the held rest of the graph says
-        about it (`FactorHistory.conditioned`). Unchanged without a window."""
+        self, own: list[gtsam.NonlinearFactor], values: gtsam.Values, added: AddedFactors
+    ) -> tuple[list[gtsam.NonlinearFactor], gtsam.Values]:
+        """The landmarks the new factors (`own` with `values`, and `added`) observe again
+        after the window lost them: the factors that bring them back, each at its estimate
+        with what the held rest of the graph says about it (`FactorHistory.conditioned`),
+        and `values` with theirs. None without a window."""
         if not self.config.window_keyframes:
-            return graph, values
+            return [], values
         held = {
             key
-            for factor in list(added.factors) + [graph.at(i) for i in range(graph.size())]
+            for factor in list(added.factors) + own
             for key in factor.keys()
             if not values.exists(key)
             and not added.values.exists(key)
             and not self._smoother.estimate.exists(key)
         }
         if not held:
-            return graph, values
+            return [], values
         whole, conditioned = split_factors(
             self._history.factors_of(held), held, set(self._smoother.estimate.keys())
         )
-        graph = gtsam.NonlinearFactorGraph(graph)
-        for factor in whole + self._history.conditioned(conditioned, held):
-            graph.add(factor)
         values = gtsam.Values(values)
         values.insert(self._history.values_of(held))
-        return graph, values
+        return whole + list(self._history.conditioned(conditioned, held)), values
 
     def _slide_window(self) -> None:
         """Restart iSAM2 on the last `window_keyframes` keyframes: their poses, the landmarks

@@ -57,6 +57,10 @@ class FactorHistory:
         """The variables that share a factor with any of `keys` (and `keys`)."""
         return {k for factor in self.factors_of(keys) for k in factor.keys()}
 
+    def dim(self, key: int) -> int:
+        """Tangent dimension of a variable: 6 for a pose, 3 for a plane or a corner."""
+        return 6 if chr(gtsam.Symbol(key).chr()) == self.keys.pose_char else 3
+
     def values_of(self, keys: Iterable[int]) -> gtsam.Values:
         """The estimate of `keys` as a new Values."""
         out = gtsam.Values()
@@ -79,7 +83,6 @@ class FactorHistory:
         variable into one `LinearContainerFactor` linearised at the estimate. Each factor
         must have exactly one free variable."""
         rows: dict[int, list[np.ndarray]] = defaultdict(list)
-        dims = self.estimate.dims()
         for factor in factors:
             mine = [k for k in factor.keys() if k in free]
             if len(mine) != 1:
@@ -92,11 +95,11 @@ class FactorHistory:
             start = 0
             for key in jacobian.keys():
                 if key == mine[0]:
-                    rows[key].append(np.column_stack([A[:, start : start + dims[key]], b]))
-                start += dims[key]
+                    rows[key].append(np.column_stack([A[:, start : start + self.dim(key)], b]))
+                start += self.dim(key)
         out = []
         for key, blocks in rows.items():
-            n = dims[key]
+            n = self.dim(key)
             # [R d] of the stacked [A b]; rows past n would hold only the residual's norm.
             R = np.linalg.qr(np.vstack(blocks))[1][:n]
             linear = gtsam.JacobianFactor(

@@ -99,6 +99,13 @@ def orient_plane_toward(n: np.ndarray, d: float, viewpoint: np.ndarray) -> tuple
     return n, d
 
 
+def rotation_angle(R: np.ndarray) -> float:
+    """Angle [rad] of a (3, 3) rotation, robust near 0 and pi (atan2 of its sine and
+    cosine; arccos of the trace alone resolves no better than about 2e-8 rad near 0)."""
+    sin = 0.5 * math.hypot(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1])
+    return math.atan2(sin, 0.5 * (float(np.trace(R)) - 1.0))
+
+
 def angle_between(a: np.ndarray, b: np.ndarray) -> float:
     """Angle [rad] between two vectors, robust near 0 and pi."""
     a = a / np.linalg.norm(a)

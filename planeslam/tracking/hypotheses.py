@@ -25,9 +25,12 @@ Frames: FrameView in the camera frame, MapView in the world frame.
 from __future__ import annotations
 
 import itertools
+import math
 from typing import TYPE_CHECKING
 
 import numpy as np
+
+from planeslam.core.geometry import rotation_angle
 
 if TYPE_CHECKING:
     from planeslam.tracking.views import FrameView, MapView
@@ -46,9 +49,8 @@ def rotation_kabsch(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 def pose_difference(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """(translation [m], rotation [deg]) of T_a^-1 T_b for two (4, 4) poses."""
-    R = T_a[:3, :3].T @ T_b[:3, :3]
-    cos = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.linalg.norm(T_b[:3, 3] - T_a[:3, 3])), float(np.degrees(np.arccos(cos)))
+    angle = rotation_angle(T_a[:3, :3].T @ T_b[:3, :3])
+    return float(np.linalg.norm(T_b[:3, 3] - T_a[:3, 3])), math.degrees(angle)
 
 
 def _poses(R: np.ndarray, t: np.ndarray) -> np.ndarray:
