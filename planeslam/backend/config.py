@@ -56,7 +56,7 @@ class BackendConfig:
     landmarks they observe and the factors among them, with every other variable held at
     its estimate (`planeslam.backend.window`), so the update costs the same however large
     the map grows; the final batch optimisation still runs over the whole graph. 100: the
-    five-pass 7-Scenes replay kept its fps (last block 1.14x the first's, 0.41x with the
+    five-pass 7-Scenes replay kept its fps (last block 1.21x the first's, 0.45x with the
     whole graph) at 6.17 against 6.84 cm; 40 was faster still but drifted (10.4 cm)."""
     keys: LandmarkKeys = field(default_factory=LandmarkKeys)
     """Symbol characters of poses, plane and corner landmarks."""
