@@ -12,8 +12,10 @@ from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import ConfigError, GeometryError
 from planeslam.core.geometry import tangent_basis
 from planeslam.core.plane_fit import (
+    correlated_depth_sigmas,
     merge_moments,
     moments_of,
+    patch_covariance,
     plane_covariance,
     plane_from_moments,
     smallest_eigh3,
@@ -387,3 +389,25 @@ def test_redkitchen_frame0_big_planes():
     assert abs(a.d - b.d) < 0.03
     overlap = np.sum((organized.labels == 0) & (msac.labels == 0))
     assert overlap > 0.7 * min(np.sum(organized.labels == 0), b.num_points)
+
+
+def test_patch_covariance_carries_the_tilt_about_the_centroid_to_the_offset() -> None:
+    """Tilting a patch about its centroid c by a small angle a along the tangent b moves
+    d = -n . c by -a b . c: the covariance's (normal, offset) block has that slope."""
+    sensor = DepthNoiseConfig()
+    n = np.array([0.3, -0.2, -0.9])
+    n /= np.linalg.norm(n)
+    c = np.array([1.2, -0.4, 2.5])  # off the optical axis
+    tilt, offset = correlated_depth_sigmas(sensor, c[2], 0.04)
+    assert offset == pytest.approx(sensor.sigma_m(2.5))
+    assert tilt == pytest.approx(offset / 0.1)
+    cov = patch_covariance(sensor, n, c, 0.04)
+    B = tangent_basis(n)
+    a = 1e-6
+    n_tilted = n + a * B[:, 0]
+    n_tilted /= np.linalg.norm(n_tilted)
+    slope = (-(n_tilted @ c) - -(n @ c)) / a  # d(d) / d(tangent 0)
+    np.testing.assert_allclose(cov[2, 0] / cov[0, 0], slope, rtol=1e-4)
+    np.testing.assert_allclose(cov[2, 2], offset**2 + tilt**2 * np.sum((B.T @ c) ** 2))
+    on_axis = patch_covariance(sensor, np.array([0.0, 0.0, -1.0]), np.array([0.0, 0.0, 2.5]), 0.04)
+    np.testing.assert_allclose(on_axis, np.diag([tilt**2, tilt**2, offset**2]))

@@ -4,6 +4,8 @@ too little support, an ambiguous map, a stale prediction), and the lost path."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from helpers import assert_pose_close
@@ -344,3 +346,54 @@ def test_a_rival_with_the_same_point_matches_is_the_same_place_not_an_ambiguity(
     assert is_rival(solve(T, 14, 0), planes_only, np.zeros(0, bool), np.zeros(0, bool), cfg)
     assert not is_rival(best, solve(perturb(T, 0.05, 2.0), 14, 0), best_points, elsewhere, cfg)
     assert not is_rival(best, solve(perturb(T, 1.0, 60.0), 3, 0), best_points, elsewhere, cfg)
+
+
+def test_the_fast_path_weights_planes_by_their_patch_covariance(rng: np.random.Generator) -> None:
+    """A small far patch off by 4 cm pulls the closed form (inlier-count weights, all
+    equal here) sideways; the refinement weighs it by its correlated depth error (a 10 cm
+    patch 2 m away tilts by about 10 deg), and the large planes' pose stands."""
+    T = camera_pose()
+    planes = [0, 1, 2, 4]
+    frame = observe(T, planes, rng)
+    world_points = np.array([[1.0, 1.0, 0.0], [0.0, 1.0, 0.6], [1.0, 0.0, 0.6], [1.0, 0.6, 0.1]])
+    T_cam_world = invert_pose(T)
+    centroids = world_points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    d = frame.d.copy()
+    d[3] += 0.04  # the box side x = 1.0, seen as a 10 x 10 cm patch
+    frame = dataclasses.replace(
+        frame,
+        d=d,
+        covariances=np.broadcast_to(1e-8 * np.eye(3), (4, 3, 3)),
+        centroids=centroids,
+        areas=np.array([2.0, 2.0, 2.0, 0.01]),
+    )
+    T_pred = perturb(T, 0.005, 0.2)
+    closed = Tracker(TrackingConfig(refine_planes=False))._track(
+        frame, map_view(), T_pred, None, None
+    )
+    refined = Tracker(TrackingConfig())._track(frame, map_view(), T_pred, None, None)
+    assert closed.path == refined.path == "planes"
+    closed_m = np.linalg.norm(closed.T_world_cam[:3, 3] - T[:3, 3])
+    refined_m = np.linalg.norm(refined.T_world_cam[:3, 3] - T[:3, 3])
+    assert closed_m > 0.005
+    assert refined_m < 0.3 * closed_m  # 4.7 against 17.8 mm
+
+
+def test_a_refinement_that_pulls_away_from_closed_form_and_prediction_is_refused(
+    rng: np.random.Generator,
+) -> None:
+    """With every step refused (a zero step cap) and the prediction on the closed form's
+    side, the closed-form pose stands."""
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 4], rng)
+    frame = dataclasses.replace(
+        frame,
+        d=frame.d + np.array([0.0, 0.0, 0.0, 0.04]),
+        covariances=np.broadcast_to(1e-8 * np.eye(3), (4, 3, 3)),
+        centroids=np.tile([0.0, 0.0, 2.0], (4, 1)),
+        areas=np.array([2.0, 2.0, 2.0, 0.01]),
+    )
+    closed = Tracker(TrackingConfig(refine_planes=False))._track(frame, map_view(), T, None, None)
+    config = TrackingConfig(refine_max_step_m=1e-9, refine_max_step_deg=1e-9)
+    held = Tracker(config)._track(frame, map_view(), closed.T_world_cam, None, None)
+    np.testing.assert_allclose(held.T_world_cam, closed.T_world_cam, atol=1e-9)

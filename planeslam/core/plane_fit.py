@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import tangent_basis
 
@@ -146,3 +147,29 @@ def smallest_eigh3(scatter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndar
     vec[ok] /= length[ok, None]
     vec[~ok] = 0.0
     return lam_min, lam_mid, vec
+
+
+def correlated_depth_sigmas(
+    sensor: DepthNoiseConfig, depth_m: float, area_m2: float, k: float = 1.0
+) -> tuple[float, float]:
+    """(tilt [rad], offset [m]) of a plane patch of `area_m2` at `depth_m` from the depth
+    error that is correlated across the patch (calibration, quantisation), which a fit
+    counting every pixel as independent leaves out: the patch is off by about k sigma(z)
+    and tilted by that over its half-width."""
+    sigma_z = k * sensor.sigma_m(max(float(depth_m), 0.0))
+    half_width = max(0.5 * float(np.sqrt(max(float(area_m2), 0.0))), 0.01)
+    return sigma_z / half_width, sigma_z
+
+
+def patch_covariance(
+    sensor: DepthNoiseConfig, normal: np.ndarray, centroid: np.ndarray, area_m2: float
+) -> np.ndarray:
+    """(3, 3) covariance in OrientedPlane3 local coordinates (camera frame) of a patch's
+    correlated depth error (`correlated_depth_sigmas`): the tilt turns the patch about its
+    centroid c, which moves the offset d = -n . c at the camera by -(B^T c) . tilt, B the
+    normal's tangent basis; the offset error moves it along n."""
+    c = np.asarray(centroid, dtype=np.float64)
+    tilt, offset = correlated_depth_sigmas(sensor, float(c[2]), area_m2)
+    J = np.eye(3)
+    J[2, :2] = -(tangent_basis(np.asarray(normal, dtype=np.float64)).T @ c)
+    return J @ np.diag([tilt**2, tilt**2, offset**2]) @ J.T

@@ -34,7 +34,7 @@ from planeslam.core.geometry import (
     transform_plane,
     unit,
 )
-from planeslam.core.plane_fit import merge_moments, plane_from_moments
+from planeslam.core.plane_fit import correlated_depth_sigmas, merge_moments, plane_from_moments
 from planeslam.frontend.types import Plane
 from planeslam.mapping.contents import MapContents
 from planeslam.mapping.gravity import UpSource
@@ -210,10 +210,13 @@ def _gate_floor(contents: MapContents, plane: Plane) -> np.ndarray:
     patches get the wide gate their real error needs; large near planes keep a tight one.
     Plus the pose uncertainty `consolidate_pose_sigma_*`."""
     cfg = contents.config
-    depth = max(float(plane.centroid[2]), 0.0)
-    sigma_z = cfg.consolidate_correlated_depth * contents.sensor.sigma_m(depth)
-    half_width = max(0.5 * math.sqrt(max(float(plane.area_m2), 0.0)), 0.01)
-    angle = math.hypot(cfg.consolidate_pose_sigma_rad, sigma_z / half_width)
+    tilt, sigma_z = correlated_depth_sigmas(
+        contents.sensor,
+        float(plane.centroid[2]),
+        float(plane.area_m2),
+        cfg.consolidate_correlated_depth,
+    )
+    angle = math.hypot(cfg.consolidate_pose_sigma_rad, tilt)
     offset = math.hypot(cfg.consolidate_pose_sigma_m, sigma_z)
     return np.diag([angle**2, angle**2, offset**2])
 

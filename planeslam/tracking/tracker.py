@@ -6,11 +6,13 @@ Per frame:
 1. `planes` (the fast path of close frames): associate the frame's planes and corners
    with the map's under the predicted pose (`association.associate_with_corners`), solve
    the closed-form pose (`registration.pose_from_planes_and_points`), associate again and
-   solve once more. Taken when the planes constrain all six degrees of freedom, every
-   residual is within the gates, and the prediction vouches for it: the last tracked frame
-   is at most `fast_max_gap_s` old (30 Hz: the motion since is a few cm, and a pose off
-   the prediction reflects the map's own corrections), or the pose is near the prediction,
-   or keypoint matches with the last keyframe agree with it.
+   solve once more, then refine it over the same planes and corners with each plane
+   weighted by its fit and patch covariance (`refine_planes`). Taken when the planes
+   constrain all six degrees of freedom, every residual is within the gates, and the
+   prediction vouches for it: the last tracked frame is at most `fast_max_gap_s` old
+   (30 Hz: the motion since is a few cm, and a pose off the prediction reflects the map's
+   own corrections), or the pose is near the prediction, or keypoint matches with the
+   last keyframe agree with it.
 2. One robust estimate over every primitive (`estimator.estimate_pose`): planes, corners
    and edge ends associated under a start pose, and keypoints with depth matched against
    the most recent keyframes, each weighted by its covariance. Start poses: the partial
@@ -46,6 +48,7 @@ import numpy as np
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, transform_points
+from planeslam.core.plane_fit import patch_covariance
 from planeslam.core.types import TrackingPath
 from planeslam.tracking.association import (
     Association,
@@ -242,6 +245,11 @@ class Tracker:
             line_sigma_m=config.sigma_line_m,
             huber_k=config.huber_k,
         )
+        self.refine_settings = replace(
+            self.settings,
+            plane_sigma_angle_rad=np.radians(config.refine_floor_deg),
+            plane_sigma_offset_m=config.refine_floor_m,
+        )
         self.thresholds = ConstraintThresholds(
             max_sigma_rad=np.radians(config.max_sigma_deg), max_sigma_m=config.max_sigma_m
         )
@@ -385,16 +393,7 @@ class Tracker:
             frame.covariances[obs] if frame.covariances is not None else np.zeros((len(obs), 3, 3))
         )
         planes = PlaneTerms(frame.normals[obs], frame.d[obs], view.normals[mp], view.d[mp], cov)
-        co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
-        corner_cov = np.broadcast_to(cfg.sigma_point_m**2 / 2 * np.eye(3), (len(co), 3, 3))
-        corners = PointTerms(
-            frame.corner_points[co],
-            view.corner_points[cm],
-            corner_cov,
-            corner_cov,
-            Primitive.CORNERS,
-        )
-        terms = [corners]
+        terms = [self._corner_terms(frame, view, assoc)]
         if keypoints is not None and len(matches):
             p_cam = keypoints.points_cam[matches.observed]
             gate = 2.0 * inlier_threshold(p_cam, cfg.points, self.sensor)
@@ -417,6 +416,50 @@ class Tracker:
             return None
         lines = self._line_terms(frame, view, assoc, T)
         return estimate_pose(T, planes, terms, lines, self.settings)
+
+    def _corner_terms(self, frame: FrameView, view: MapView, assoc: Association) -> PointTerms:
+        """Point terms of the associated corners (`sigma_point_m`, split between frame and
+        map)."""
+        co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+        cov = np.broadcast_to(self.config.sigma_point_m**2 / 2 * np.eye(3), (len(co), 3, 3))
+        return PointTerms(
+            frame.corner_points[co], view.corner_points[cm], cov, cov, Primitive.CORNERS
+        )
+
+    def _refined(
+        self, frame: FrameView, view: MapView, solve: PoseSolve, T_pred: np.ndarray
+    ) -> np.ndarray:
+        """The closed-form plane pose of `solve` refined by the robust estimate over the
+        same planes (each weighted by its fit and patch covariance, `refine_planes`) and
+        corners; the closed-form pose when the refinement leaves a direction free, or moves
+        it beyond `refine_max_step_*` and away from the prediction T_pred (4, 4)."""
+        cfg = self.config
+        assoc = solve.association
+        obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
+        if frame.covariances is None or frame.centroids is None or frame.areas is None:
+            return solve.T  # a view built without its planes' statistics (tests)
+        cov = frame.covariances[obs] + np.array(
+            [
+                patch_covariance(self.sensor, frame.normals[i], frame.centroids[i], frame.areas[i])
+                for i in obs
+            ]
+        ).reshape(-1, 3, 3)
+        planes = PlaneTerms(frame.normals[obs], frame.d[obs], view.normals[mp], view.d[mp], cov)
+        estimate = estimate_pose(
+            solve.T,
+            planes,
+            [self._corner_terms(frame, view, assoc)],
+            None,
+            self.refine_settings,
+        )
+        if not fully_constrained(estimate, self.thresholds):
+            return solve.T
+        T = estimate.T_world_cam
+        meters, degrees = pose_difference(solve.T, T)
+        small = meters <= cfg.refine_max_step_m and degrees <= cfg.refine_max_step_deg
+        if small or pose_difference(T_pred, T)[0] <= pose_difference(T_pred, solve.T)[0]:
+            return T
+        return solve.T
 
     def _line_terms(
         self, frame: FrameView, view: MapView, assoc: Association, T: np.ndarray
@@ -764,10 +807,11 @@ class Tracker:
                 "planes": len(trusted.association.planes),
                 "corners": len(trusted.association.corners),
             }
+            T = self._refined(frame, view, trusted, T_pred) if cfg.refine_planes else trusted.T
             return self._result(
                 frame,
                 view,
-                trusted.T,
+                T,
                 trusted.association,
                 TrackingPath.PLANES,
                 "",

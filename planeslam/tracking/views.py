@@ -87,6 +87,8 @@ class FrameView:
     covariances: np.ndarray | None = None
     """(N, 3, 3) fit covariances in OrientedPlane3 local coordinates; None: unknown (the
     estimator then uses its floors alone)."""
+    centroids: np.ndarray | None = None
+    """(N, 3) plane centroids [m]; None: unknown."""
     edge_planes: np.ndarray = _zeros(0, 2, dtype=np.int64)
     """(E, 2) ROW indices of each real intersection's two planes."""
     edge_segments: np.ndarray = _zeros(0, 2, 3)
@@ -146,6 +148,7 @@ class FrameView:
             covariances=np.array([p.covariance for p in planes], dtype=np.float64).reshape(
                 -1, 3, 3
             ),
+            centroids=np.array([p.centroid for p in planes], dtype=np.float64).reshape(-1, 3),
             edge_planes=np.array(
                 [[row[a], row[b]] for a, b in (e.planes for e in edges)], dtype=np.int64
             ).reshape(-1, 2),
