@@ -371,7 +371,9 @@ def test_the_fast_path_weights_planes_by_their_patch_covariance(rng: np.random.G
     closed = Tracker(TrackingConfig(refine_planes=False))._track(
         frame, map_view(), T_pred, None, None
     )
-    refined = Tracker(TrackingConfig())._track(frame, map_view(), T_pred, None, None)
+    refined = Tracker(TrackingConfig(refine_planes=True))._track(
+        frame, map_view(), T_pred, None, None
+    )
     assert closed.path == refined.path == "planes"
     closed_m = np.linalg.norm(closed.T_world_cam[:3, 3] - T[:3, 3])
     refined_m = np.linalg.norm(refined.T_world_cam[:3, 3] - T[:3, 3])
@@ -394,6 +396,6 @@ def test_a_refinement_that_pulls_away_from_closed_form_and_prediction_is_refused
         areas=np.array([2.0, 2.0, 2.0, 0.01]),
     )
     closed = Tracker(TrackingConfig(refine_planes=False))._track(frame, map_view(), T, None, None)
-    config = TrackingConfig(refine_max_step_m=1e-9, refine_max_step_deg=1e-9)
+    config = TrackingConfig(refine_planes=True, refine_max_step_m=1e-9, refine_max_step_deg=1e-9)
     held = Tracker(config)._track(frame, map_view(), closed.T_world_cam, None, None)
     np.testing.assert_allclose(held.T_world_cam, closed.T_world_cam, atol=1e-9)

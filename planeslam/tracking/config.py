@@ -138,13 +138,18 @@ class TrackingConfig:
     fast_max_correction_deg: float = 3.0
     """... and turned it by at most this [deg]; farther, when `points.min_inliers`
     keypoint matches with the last keyframe agree with it."""
-    refine_planes: bool = True
+    refine_planes: bool = False
     """Refine the fast path's closed-form plane pose (whose weights are inlier counts) by
     the robust estimate over the same planes and corners, each plane weighted by
     its fit covariance plus the sensor's depth error correlated across its patch
     (`core.plane_fit.patch_covariance`: large near planes count most, small far patches
-    little) plus `refine_floor_*`. On the TUM fr1 clips it takes the per-frame jitter of
-    the closed form (up to 5 cm along directions only small patches fix) out."""
+    little) plus `refine_floor_*`. On the TUM fr1 clips it takes out the closed form's
+    per-frame jitter (up to 5 cm along directions only small patches fix): 0.26 / 0.51 cm
+    against 1.99 / 1.45 (xyz / desk), ICL-NUIM 1.09 against 1.72 cm, 7-Scenes 4.65 against
+    5.16 cm. Off by default: the five-pass 7-Scenes replay (`planeslam bench long`) goes
+    wrong with it in its third pass (145 and 299 keyframes in the third and fourth 1,000
+    frames, 2,740 planes), and with a 1 cm floor or without the prediction rule below in
+    its second (README, "Figures")."""
     refine_floor_deg: float = 0.17
     """Normal noise added to every plane in the refinement: the map plane's and the
     pose's own error [deg] ..."""

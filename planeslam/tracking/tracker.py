@@ -6,8 +6,8 @@ Per frame:
 1. `planes` (the fast path of close frames): associate the frame's planes and corners
    with the map's under the predicted pose (`association.associate_with_corners`), solve
    the closed-form pose (`registration.pose_from_planes_and_points`), associate again and
-   solve once more, then refine it over the same planes and corners with each plane
-   weighted by its fit and patch covariance (`refine_planes`). Taken when the planes
+   solve once more (with `refine_planes`, refine it over the same planes and corners with
+   each plane weighted by its fit and patch covariance). Taken when the planes
    constrain all six degrees of freedom, every residual is within the gates, and the
    prediction vouches for it: the last tracked frame is at most `fast_max_gap_s` old
    (30 Hz: the motion since is a few cm, and a pose off the prediction reflects the map's
