@@ -399,3 +399,24 @@ def test_a_refinement_that_pulls_away_from_closed_form_and_prediction_is_refused
     config = TrackingConfig(refine_planes=True, refine_max_step_m=1e-9, refine_max_step_deg=1e-9)
     held = Tracker(config)._track(frame, map_view(), closed.T_world_cam, None, None)
     np.testing.assert_allclose(held.T_world_cam, closed.T_world_cam, atol=1e-9)
+
+
+@pytest.mark.parametrize(("jump_m", "fast"), [(0.03, True), (0.08, False), (0.15, False)])
+def test_close_frames_take_a_plane_pose_only_within_the_jump_limit(
+    rng: np.random.Generator, jump_m: float, fast: bool
+) -> None:
+    """30 Hz (33 ms since the last frame): a plane pose up to `fast_max_jump_m` (5 cm) off
+    the prediction is taken at once (the map's corrections move it); farther it needs the
+    keypoints, and without them goes to the robust estimate, which says why."""
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    T_pred = T.copy()
+    T_pred[:3, 3] += jump_m * np.array([0.6, 0.0, 0.8])
+    result = Tracker(TrackingConfig())._track(
+        frame, map_view(), T_pred, None, None, frame_gap_s=0.033
+    )
+    assert_pose_close(result.T_world_cam, T, 1e-6, 1e-4)
+    assert (result.reason == "") is fast
+    loose = Tracker(TrackingConfig(fast_max_jump_m=0.1))  # 8 cm is within a 10 cm limit
+    taken = loose._track(frame, map_view(), T_pred, None, None, frame_gap_s=0.033).reason == ""
+    assert taken is (jump_m < 0.1)

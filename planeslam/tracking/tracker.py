@@ -9,9 +9,10 @@ Per frame:
    solve once more (with `refine_planes`, refine it over the same planes and corners with
    each plane weighted by its fit and patch covariance). Taken when the planes
    constrain all six degrees of freedom, every residual is within the gates, and the
-   prediction vouches for it: the last tracked frame is at most `fast_max_gap_s` old
-   (30 Hz: the motion since is a few cm, and a pose off the prediction reflects the map's
-   own corrections), or the pose is near the prediction, or keypoint matches with the
+   prediction vouches for it: the last tracked frame is at most `fast_max_gap_s` old and
+   the pose within `fast_max_jump_*` of the prediction (30 Hz: the motion since is a few
+   cm, and a pose somewhat off the prediction reflects the map's own corrections), or the
+   pose is within `fast_max_correction_*` of the prediction, or keypoint matches with the
    last keyframe agree with it.
 2. One robust estimate over every primitive (`estimator.estimate_pose`): planes, corners
    and edge ends associated under a start pose, and keypoints with depth matched against
@@ -798,7 +799,7 @@ class Tracker:
             and trusted.registration.status is RegistrationStatus.OK
             and self.prediction_valid  # after a loss the prediction is no evidence
             and (
-                frame_gap_s <= cfg.fast_max_gap_s
+                (frame_gap_s <= cfg.fast_max_gap_s and self._near(trusted.T, T_pred, True))
                 or self._near(trusted.T, T_pred)
                 or self._points_agree(trusted.T, points)
             )
@@ -925,10 +926,13 @@ class Tracker:
         matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
         return self._agreeing(T, keypoints, matches) >= self.config.points.min_inliers
 
-    def _near(self, T: np.ndarray, T_pred: np.ndarray) -> bool:
-        """Whether T (4, 4) is within the fast path's correction of the prediction."""
+    def _near(self, T: np.ndarray, T_pred: np.ndarray, close_frames: bool = False) -> bool:
+        """Whether T (4, 4) is within the fast path's correction of the prediction (with
+        `close_frames`, within its jump for frames at most `fast_max_gap_s` apart)."""
         meters, degrees = pose_difference(T_pred, T)
         cfg = self.config
+        if close_frames:
+            return meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg
         return meters <= cfg.fast_max_correction_m and degrees <= cfg.fast_max_correction_deg
 
     def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
