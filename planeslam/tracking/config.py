@@ -156,10 +156,10 @@ class TrackingConfig:
     little) plus `refine_floor_*`. On the TUM fr1 clips it takes out the closed form's
     per-frame jitter (up to 5 cm along directions only small patches fix): 0.26 / 0.51 cm
     against 1.99 / 1.45 (xyz / desk), ICL-NUIM 1.09 against 1.72 cm, 7-Scenes 4.65 against
-    5.16 cm. Off by default: the five-pass 7-Scenes replay (`planeslam bench long`) goes
-    wrong with it in its third pass (145 and 299 keyframes in the third and fourth 1,000
-    frames, 2,740 planes), and with a 1 cm floor or without the prediction rule below in
-    its second (README, "Figures")."""
+    5.16 cm (measured before `fast_max_jump_*`). Off by default: the five-pass 7-Scenes
+    replay (`planeslam bench long`) goes wrong with it in its third pass (145 and 299
+    keyframes in the third and fourth 1,000 frames, 2,740 planes), and with a 1 cm floor or
+    without the prediction rule below in its second (README, "Figures")."""
     refine_floor_deg: float = 0.17
     """Normal noise added to every plane in the refinement: the map plane's and the
     pose's own error [deg] ..."""
