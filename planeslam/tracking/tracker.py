@@ -434,11 +434,11 @@ class Tracker:
         same planes (each weighted by its fit and patch covariance, `refine_planes`) and
         corners; the closed-form pose when the refinement leaves a direction free, or moves
         it beyond `refine_max_step_*` and away from the prediction T_pred (4, 4)."""
+        if frame.covariances is None or frame.centroids is None or frame.areas is None:
+            return solve.T  # a view built without its planes' statistics (tests)
         cfg = self.config
         assoc = solve.association
         obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
-        if frame.covariances is None or frame.centroids is None or frame.areas is None:
-            return solve.T  # a view built without its planes' statistics (tests)
         cov = frame.covariances[obs] + np.array(
             [
                 patch_covariance(self.sensor, frame.normals[i], frame.centroids[i], frame.areas[i])
