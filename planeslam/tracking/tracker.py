@@ -799,8 +799,7 @@ class Tracker:
             and trusted.registration.status is RegistrationStatus.OK
             and self.prediction_valid  # after a loss the prediction is no evidence
             and (
-                (frame_gap_s <= cfg.fast_max_gap_s and self._near(trusted.T, T_pred, True))
-                or self._near(trusted.T, T_pred)
+                self._near(trusted.T, T_pred, close_frames=frame_gap_s <= cfg.fast_max_gap_s)
                 or self._points_agree(trusted.T, points)
             )
         ):
@@ -927,13 +926,13 @@ class Tracker:
         return self._agreeing(T, keypoints, matches) >= self.config.points.min_inliers
 
     def _near(self, T: np.ndarray, T_pred: np.ndarray, close_frames: bool = False) -> bool:
-        """Whether T (4, 4) is within the fast path's correction of the prediction (with
-        `close_frames`, within its jump for frames at most `fast_max_gap_s` apart)."""
+        """Whether T (4, 4) is within the fast path's correction of the prediction, or with
+        `close_frames` (at most `fast_max_gap_s` apart) within its jump limit."""
         meters, degrees = pose_difference(T_pred, T)
         cfg = self.config
-        if close_frames:
-            return meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg
-        return meters <= cfg.fast_max_correction_m and degrees <= cfg.fast_max_correction_deg
+        if meters <= cfg.fast_max_correction_m and degrees <= cfg.fast_max_correction_deg:
+            return True
+        return close_frames and meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg
 
     def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
         """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""
