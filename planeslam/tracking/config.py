@@ -135,8 +135,8 @@ class TrackingConfig:
     parallel face or to another copy of a revisited wall, not motion. The same as
     `fast_max_correction_m` by default (a close frame gets no looser check than a far
     one). 7-Scenes at 30 Hz: 4.34 cm against 5.16 with no limit, at about 5.5 ms more
-    tracking per frame (mean); 10 cm / 5 deg: 4.22 cm at 2.4 ms more, but on the five-pass
-    replay 1.72x the first pass's planes against 1.49x (README, "Long runs")."""
+    tracking per frame (mean); 10 cm / 5 deg: 4.22 cm at hardly any cost, but on the
+    five-pass replay 1.72x the first pass's planes against 1.49x (README, "Long runs")."""
     fast_max_jump_deg: float = 3.0
     """... or turned farther than this [deg]."""
     fast_max_correction_m: float = 0.05
