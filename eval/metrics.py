@@ -66,7 +66,8 @@ class RunMetrics:
     backend: dict[str, float] = field(default_factory=dict)
     """The iSAM2 backend's own figures, when it ran: update_ms_median and update_ms_max
     (per keyframe, in its process; the 'backend' stage is what tracking waited), batch_ms
-    (the final optimisation), failures (indeterminate updates handled), factors."""
+    (the final optimisation), failures (indeterminate updates handled), factors, loops
+    (loop constraints against older keyframes, `planeslam.tracking.loops`)."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -189,6 +190,7 @@ def _backend_figures(slam: SLAM) -> dict[str, float]:
         "batch_ms": float(result.batch_ms),
         "failures": int(result.failures),
         "factors": int(result.num_factors),
+        "loops": len(slam.loops),
     }
 
 

@@ -64,6 +64,7 @@ from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
 from planeslam.tracking.estimator import PoseConstraints
+from planeslam.tracking.keypoints import Keypoints
 from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.segments import Segment
 from planeslam.tracking.tracker import MapView, Tracker, TrackResult
@@ -205,6 +206,9 @@ class SLAM:
         self._joined_planes: list[tuple[int, int]] = []
         """(absorbed, surviving) map plane ids joined since the last keyframe went to the
         backend, which ties them in the graph with the next one."""
+        self.loops: list[tuple[int, int]] = []
+        """(keyframe, older keyframe) frame indices of every loop constraint sent to the
+        backend."""
         self.backend_result: BackendResult | None = None
         """What the backend reported at `finish`: update times, failures, factors."""
         self.pointcloud_bytes = 0
@@ -312,11 +316,16 @@ class SLAM:
 
         keyframe = track.path.maps and self._is_keyframe(T_world_cam, track.new_planes)
         if keyframe:
+            keypoints = track.keypoints
             if not self.localize:  # a localising run keeps keyframes for tracking only
+                if self.backend.takes_loops:
+                    t0 = time.perf_counter()
+                    keypoints = self.tracker.keyframe_keypoints(rgb, observation.cloud, keypoints)
+                    stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
                 T_world_cam = self._add_keyframe(
-                    index, timestamp, observation, track, rgb, stage_ms
+                    index, timestamp, observation, track, rgb, stage_ms, keypoints
                 )
-            self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, track.keypoints)
+            self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, keypoints)
         self._remember(index, timestamp, T_world_cam, keyframe, track.lost)
         if joined is not None:
             self._join(index, joined)
@@ -416,10 +425,13 @@ class SLAM:
         track: TrackResult,
         rgb: np.ndarray | None,
         stage_ms: dict[str, float],
+        keypoints: Keypoints | None,
     ) -> np.ndarray:
         """Merge the frame into the map and hand it to the backend (after applying the
-        previous keyframe's update if it is still pending). Returns the frame's pose:
-        corrected by that update, or with `lag_frames` 0 the backend's own."""
+        previous keyframe's update if it is still pending) with its loop constraint, if
+        its `keypoints` place it against an older keyframe (`Tracker.find_loop`). Returns
+        the frame's pose: corrected by that update, or with `lag_frames` 0 the backend's
+        own."""
         T_world_cam = track.T_world_cam
         moved: tuple[int, ...] = ()
         if self._pending:
@@ -428,6 +440,13 @@ class SLAM:
             correction = self._apply_update(self.backend.collect(), merge_segments=False)
             T_world_cam = orthonormalize_pose(correction @ T_world_cam)
             stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
+        loop = None
+        if self.backend.takes_loops:
+            t0 = time.perf_counter()
+            loop = self.tracker.find_loop(index, observation, keypoints, T_world_cam)
+            if loop is not None:
+                self.loops.append((index, loop.old_index))
+            stage_ms["loops"] = stage_ms.get("loops", 0.0) + 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
         merged = self.map.merge(
             observation,
@@ -454,6 +473,7 @@ class SLAM:
                 corner_ids=merged.corners,
                 T_prev_cam=T_prev_cam,
                 joined_planes=tuple(self._joined_planes),
+                loops=() if loop is None else (loop,),
             )
         )
         self._joined_planes = []

@@ -154,3 +154,37 @@ def test_point_evidence_that_no_rival_could_match_is_the_only_candidate(
     )
     assert len(tried.poses) > 1
     assert_pose_close(tried.poses[0], T, 1e-3, 0.05)
+
+
+def test_a_drifted_keyframe_finds_its_loop_against_the_older_keyframe() -> None:
+    """Keyframe 0 of the box-in-a-room circle, then one far round the circle (the recent
+    one); view 1 (15 deg and 18 cm from view 0) tracked 8 cm off its true pose: its
+    keypoints place it against keyframe 0 (`find_loop`) within 2 cm / 1 deg of the true
+    relative pose. Tracked where it is, it needs no loop; with keyframe 0 among the recent
+    ones, none is looked for."""
+    from planeslam.sim.render import render_frame
+    from planeslam.sim.scenes import box_room_circle
+    from planeslam.tracking.config import LoopConfig
+    from planeslam.tracking.loops import find_loop
+
+    scene, path = box_room_circle()
+    rng = np.random.default_rng(5)
+    views = {k: render_frame(scene, path.T_world_cam[k], CAMERA, rng) for k in (0, 1, 12)}
+    detector = KeypointDetector(CAMERA, SENSOR, PointConfig())
+    store = KeypointMap(detector)
+    for k in (0, 12):
+        keypoints = detector.detect(views[k].rgb, cloud_of(views[k].depth_m))
+        store.add(k, path.T_world_cam[k], None, None, keypoints)
+    query = detector.detect(views[1].rgb, cloud_of(views[1].depth_m))
+    T_true = path.T_world_cam[1]
+    T_drifted = T_true.copy()
+    T_drifted[:3, 3] += [0.08, 0.0, -0.02]
+    cfg = LoopConfig(skip_recent=1)
+
+    loop = find_loop(store, query, T_drifted, cfg, PointConfig(), SENSOR, rng)
+    assert loop is not None and loop.old_index == 0 and loop.inliers >= cfg.min_inliers
+    T_old_cam_true = invert_pose(path.T_world_cam[0]) @ T_true
+    assert_pose_close(loop.T_old_cam, T_old_cam_true, 0.02, 1.0)
+    assert find_loop(store, query, T_true, cfg, PointConfig(), SENSOR, rng) is None
+    recent = LoopConfig(skip_recent=2)
+    assert find_loop(store, query, T_drifted, recent, PointConfig(), SENSOR, rng) is None

@@ -14,12 +14,13 @@ from planeslam.app.runner import run_sequence
 from planeslam.config import PlaneSlamConfig, resolve_config
 from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError
+from planeslam.eval.metrics import slam_run_metrics
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, read_tum
 from planeslam.mapping.world_map import Map
 from planeslam.sim.render import synthesize
-from planeslam.slam import SLAM, run_frames
+from planeslam.slam import SLAM, FrameResult, run_frames
 
 
 @pytest.fixture(scope="module")
@@ -185,3 +186,47 @@ def test_a_given_map_merges_with_the_runs_sensor_model(tmp_path: Path) -> None:
     assert loaded.sensor == DepthNoiseConfig()
     with SLAM(cfg, "merge", map=loaded) as slam:
         assert slam.map is loaded and slam.map.sensor == sensor
+
+
+@pytest.mark.slow
+def test_a_revisit_sends_loop_constraints_that_keep_the_poses(loop: Path) -> None:
+    """The room-with-boxes loop comes back to where it started. With loop constraints on
+    (`tracking.loops`, off by default) and every loop kept however small its correction
+    (`min_correction_*` 0), the keyframes
+    that revisit the start place themselves against older keyframes by keypoints; the
+    constraints reach the graph (metrics count them) and, being right, keep the poses as
+    good as without them."""
+    cfg = resolve_config(
+        loop,
+        overrides=[
+            "tracking.loops.enabled=true",
+            "tracking.loops.min_correction_m=0",
+            "tracking.loops.min_correction_deg=0",
+            "tracking.loops.skip_recent=5",
+        ],
+    )
+    dataset = TumDataset(loop, cfg.camera, cfg.dataset)
+    results = {}
+    for enabled in (True, False):
+        config = dataclasses.replace(
+            cfg,
+            tracking=dataclasses.replace(
+                cfg.tracking, loops=dataclasses.replace(cfg.tracking.loops, enabled=enabled)
+            ),
+        )
+        slam = SLAM(config, "isam2", T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
+        frames: list[FrameResult] = []
+        summary = run_frames(slam, dataset, range(len(dataset)), on_result=frames.append)
+        keyframes = [r.index for r in frames if r.keyframe]
+        ev = evaluate_trajectory(dataset.groundtruth, slam.trajectory(), 0.02, 1.0)
+        results[enabled] = (slam, summary, ev, keyframes)
+    slam, summary, ev, keyframes = results[True]
+    assert len(slam.loops) >= 3, slam.loops
+    for index, old in slam.loops:
+        assert keyframes.index(index) - keyframes.index(old) > 5  # not among the recent
+    assert slam_run_metrics(slam, summary).backend["loops"] == len(slam.loops)
+    assert not results[False][0].loops
+    assert ev.ate_rmse_m < max(0.01, 1.5 * results[False][2].ate_rmse_m), (
+        ev.ate_rmse_m,
+        results[False][2].ate_rmse_m,
+    )

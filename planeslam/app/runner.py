@@ -96,6 +96,7 @@ class RunResult:
                 f"iSAM2: {b['factors']:.0f} factors, update median "
                 f"{b['update_ms_median']:.0f} ms (max {b['update_ms_max']:.0f}) per keyframe, "
                 f"final batch {b['batch_ms']:.0f} ms, {b['failures']:.0f} failures handled"
+                + (f", {b['loops']:.0f} loop constraints" if b.get("loops") else "")
             )
         if self.evaluation is not None:
             ev = self.evaluation.evaluation

@@ -21,7 +21,7 @@ import numpy as np
 
 from planeslam.backend.config import BackendConfig
 from planeslam.core.errors import ConfigError
-from planeslam.core.types import FrameMeasurements, PlaneEstimate
+from planeslam.core.types import FrameMeasurements, LoopConstraint, PlaneEstimate
 
 
 class BackendKind(str, enum.Enum):
@@ -54,6 +54,8 @@ class KeyframeInput:
     joined_planes: tuple[tuple[int, int], ...] = ()
     """(absorbed, surviving) map plane ids the map joined since the last keyframe
     (`Map.merge_same_segments`): one plane, to be tied in the graph too."""
+    loops: tuple[LoopConstraint, ...] = ()
+    """Its poses against older keyframes it revisits (`planeslam.tracking.loops`)."""
 
 
 @dataclass(frozen=True)
@@ -103,6 +105,8 @@ class Backend(Protocol):
     it (or at the next keyframe, if sooner); 0: at once."""
     objects_every_keyframe: bool
     """Whether the map re-aggregates its objects at every merge (otherwise at `finish`)."""
+    takes_loops: bool
+    """Whether `KeyframeInput.loops` reach its poses (the merge backend never revises one)."""
 
     def is_keyframe(
         self, T_keyframes: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int

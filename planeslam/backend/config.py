@@ -17,6 +17,13 @@ class BackendConfig:
     """Sigma of each rotation component of a keyframe-to-keyframe odometry factor [rad]."""
     odometry_sigma_trans_m: float = 0.02
     """Sigma of each translation component of an odometry factor [m]."""
+    loop_sigma_rot_rad: float = 0.01
+    """Sigma of each rotation component of a loop factor (a keyframe placed against an
+    older keyframe by keypoints, `KeyframeInput.loops`) [rad] ..."""
+    loop_sigma_trans_m: float = 0.02
+    """... and of each translation component [m]; Huber-robust at `loop_huber_k` sigmas."""
+    loop_huber_k: float = 2.0
+    """Huber threshold of a loop factor [sigmas]."""
     prior_sigma_rot_rad: float = 1e-4
     """Sigma of the prior on the first keyframe's rotation [rad]."""
     prior_sigma_trans_m: float = 1e-4
@@ -88,6 +95,9 @@ class BackendConfig:
         for name in (
             "odometry_sigma_rot_rad",
             "odometry_sigma_trans_m",
+            "loop_sigma_rot_rad",
+            "loop_sigma_trans_m",
+            "loop_huber_k",
             "prior_sigma_rot_rad",
             "prior_sigma_trans_m",
             "relinearize_threshold",

@@ -6,9 +6,10 @@ frame [m]) from `planeslam.factors.PlaneLandmarks`. Factors per keyframe: a
 prior on the first, a BetweenFactorPose3 from the previous keyframe on every
 other one (so no pose is ever constrained by planes alone), and the landmark
 factors of its observation: its corners and the `max_planes_per_keyframe` of its planes
-that best fix its pose (`informative_planes`), and a tie between each two plane landmarks
-the map joined since the last keyframe (`tie_joined_planes`). One `ISAM2.update` per
-keyframe (plus `extra_updates` relinearising iterations).
+that best fix its pose (`informative_planes`), a tie between each two plane landmarks
+the map joined since the last keyframe (`tie_joined_planes`), and a BetweenFactorPose3
+from each older keyframe it revisits (its loop constraints, `planeslam.tracking.loops`).
+One `ISAM2.update` per keyframe (plus `extra_updates` relinearising iterations).
 
 With `window_keyframes` N > 0, iSAM2 holds only the last N to 1.5 N keyframes and what
 they observe; the rest of the graph is held at its estimate (`planeslam.backend.window`),
@@ -36,7 +37,12 @@ from planeslam.backend.config import BackendConfig
 from planeslam.backend.window import FactorHistory, split_factors
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import as_pose, invert_pose
-from planeslam.core.types import FrameMeasurements, PlaneEstimate, PlaneMeasurement
+from planeslam.core.types import (
+    FrameMeasurements,
+    LoopConstraint,
+    PlaneEstimate,
+    PlaneMeasurement,
+)
 from planeslam.factors.landmarks import AddedFactors, PlaneLandmarks
 from planeslam.factors.recovery import RecoveringISAM2, new_isam2
 
@@ -121,6 +127,7 @@ class Isam2Backend:
         odometry_T_prev_cur: np.ndarray | None = None,
         odometry_sigmas: tuple[float, float] | np.ndarray | None = None,
         joined_planes: Sequence[tuple[int, int]] = (),
+        loops: Sequence[LoopConstraint] = (),
     ) -> np.ndarray:
         """Add keyframe `index` with its measurements, update iSAM2 -> optimised T_world_cam (4, 4).
 
@@ -134,7 +141,9 @@ class Isam2Backend:
         trans [m]) or (6,) sigmas (rotation first) overriding the config's.
         joined_planes: (absorbed, surviving) plane landmark ids the map found to be one
         plane since the last keyframe; with `tie_joined_planes` each pair gets a tie
-        (`PlaneLandmarks.join_planes`).
+        (`PlaneLandmarks.join_planes`). loops: this keyframe's poses against older
+        keyframes, each a Huber-robust BetweenFactorPose3 (`loop_sigma_*`); an older
+        keyframe outside the window comes back into it held by its own factors.
         """
         if isinstance(index, bool) or int(index) != index:
             raise ConfigError(f"keyframe index {index!r}: expected an integer")
@@ -169,6 +178,8 @@ class Isam2Backend:
                     gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(odometry_sigmas)),
                 )
             )
+        for loop in loops:
+            pose_graph.add(self._loop_factor(loop, pose_key))
         landmark_graph = gtsam.NonlinearFactorGraph()
         landmark_values = gtsam.Values()
         added = self.landmarks.add_observations(
@@ -208,6 +219,23 @@ class Isam2Backend:
         self._timestamps[index] = float(timestamp)
         self._last_index = index
         return self._estimate.atPose3(pose_key).matrix()
+
+    def _loop_factor(self, loop: LoopConstraint, pose_key: int) -> gtsam.BetweenFactorPose3:
+        """The relative-pose factor of a loop constraint (ConfigError when its older
+        keyframe is not in the graph)."""
+        old_key = self.keys.pose(loop.old_index)
+        if not self._estimate.exists(old_key):
+            raise ConfigError(
+                f"loop against keyframe {loop.old_index}: not a keyframe of the graph"
+            )
+        cfg = self.config
+        sigmas = np.r_[[cfg.loop_sigma_rot_rad] * 3, [cfg.loop_sigma_trans_m] * 3]
+        noise = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(cfg.loop_huber_k),
+            gtsam.noiseModel.Diagonal.Sigmas(sigmas),
+        )
+        T_old_cam = as_pose(loop.T_old_cam, "loop.T_old_cam")
+        return gtsam.BetweenFactorPose3(old_key, pose_key, gtsam.Pose3(T_old_cam), noise)
 
     def _taken_back(
         self, own: list[gtsam.NonlinearFactor], values: gtsam.Values, added: AddedFactors

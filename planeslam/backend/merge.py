@@ -20,6 +20,7 @@ class MergeBackend:
     kind = BackendKind.MERGE
     lag_frames = 0
     objects_every_keyframe = True
+    takes_loops = False
 
     def __init__(self) -> None:
         self._poses: dict[int, np.ndarray] = {}

@@ -79,6 +79,7 @@ class Isam2Worker:
 
     kind = BackendKind.ISAM2
     objects_every_keyframe = False
+    takes_loops = True
 
     def __init__(self, config: BackendConfig, inline: bool = False) -> None:
         self.config = config
@@ -220,6 +221,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             kf.corner_ids,
             kf.T_prev_cam,
             joined_planes=kf.joined_planes,
+            loops=kf.loops,
         )
         return KeyframeUpdate(
             index=kf.index,

@@ -137,6 +137,20 @@ class FrameMeasurements:
 
 
 @dataclass(frozen=True)
+class LoopConstraint:
+    """A keyframe placed against an older keyframe it revisits, by keypoint matches and
+    both keyframes' planes (`planeslam.tracking.loops`): a relative pose for the backend's
+    graph."""
+
+    old_index: int
+    """Frame index of the older keyframe."""
+    T_old_cam: np.ndarray
+    """(4, 4) the new keyframe's pose in the older keyframe's camera frame."""
+    inliers: int
+    """Keypoint matches that agree with the points' pose."""
+
+
+@dataclass(frozen=True)
 class PlaneEstimate:
     """A plane landmark's estimate, world frame."""
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -164,6 +165,16 @@ class PointMatches:
             np.concatenate([p.keyframes for p in parts]),
         )
 
+    def moved(self, T_new_world: np.ndarray) -> PointMatches:
+        """The same matches with the keyframe points in another frame, (4, 4) T_new_world."""
+        R = T_new_world[:3, :3]
+        return PointMatches(
+            observed=self.observed,
+            points_world=transform_points(T_new_world, self.points_world),
+            covariances_world=np.einsum("ij,njk,lk->nil", R, self.covariances_world, R),
+            keyframes=self.keyframes,
+        )
+
 
 def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float) -> np.ndarray:
     """(M, 2) (query row, train row) pairs of (Q, 32) and (T, 32) uint8 ORB descriptors:
@@ -231,6 +242,16 @@ class KeypointMap:
         if keypoints is not None:
             self._stack = None
 
+    def pose(self, index: int) -> np.ndarray:
+        """(4, 4) T_world_cam of keyframe `index` (as last moved)."""
+        return self._keyframes[index].T_world_cam
+
+    def poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """Frame indices (K,) of the keyframes, oldest first, and their (K, 4, 4) poses."""
+        indices = np.fromiter(self._keyframes, np.int64, len(self._keyframes))
+        poses = np.array([kf.T_world_cam for kf in self._keyframes.values()]).reshape(-1, 4, 4)
+        return indices, poses
+
     def move(self, index: int, T_world_cam: np.ndarray) -> None:
         """The keyframe `index` has a new pose (4, 4) (the backend's correction)."""
         kf = self._keyframes.get(index)
@@ -274,16 +295,29 @@ class KeypointMap:
             )
         return PointMatches.concatenate(parts)
 
-    def vote(self, keypoints: Keypoints, count: int) -> list[int]:
-        """The `count` keyframes (anywhere in the map) holding the most nearest neighbours
-        of `keypoints`' descriptors within `vote_max_distance` bits, best first."""
+    def vote(
+        self,
+        keypoints: Keypoints,
+        count: int,
+        among: Collection[int] | None = None,
+        strongest: int | None = None,
+    ) -> list[int]:
+        """The `count` keyframes (anywhere in the map, or of `among`) holding the most
+        nearest neighbours of `keypoints`' descriptors (all, or the `strongest`) within
+        `vote_max_distance` bits, best first."""
         import cv2
 
         stack = self._descriptor_stack()
         if stack is None or not len(keypoints):
             return []
         descriptors, owner = stack
-        matches = cv2.BFMatcher(cv2.NORM_HAMMING).match(keypoints.descriptors, descriptors)
+        if among is not None:
+            mine = np.isin(owner, np.fromiter(among, np.int64, len(among)))
+            if not mine.any():
+                return []
+            descriptors, owner = descriptors[mine], owner[mine]
+        query = keypoints.descriptors[:strongest]
+        matches = cv2.BFMatcher(cv2.NORM_HAMMING).match(query, descriptors)
         rows = [m.trainIdx for m in matches if m.distance <= self.detector.config.vote_max_distance]
         if not rows:
             return []

@@ -21,38 +21,14 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
-from planeslam.core.geometry import invert_pose, transform_points
+from planeslam.core.geometry import invert_pose
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.tracker import Tracker, TrackResult
-from planeslam.tracking.views import FrameView, MapView
+from planeslam.tracking.views import FrameView, frame_as_map
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
-
-
-def frame_as_map(frame: FrameView, T_world_cam: np.ndarray) -> MapView:
-    """A frame's planes, corners, edges and objects moved into the world by T_world_cam
-    (4, 4): the map of one keyframe."""
-    normals = frame.normals @ T_world_cam[:3, :3].T
-    return MapView(
-        plane_ids=frame.plane_ids,
-        normals=normals,
-        d=frame.d - normals @ T_world_cam[:3, 3],
-        corner_ids=np.arange(len(frame.corner_points), dtype=np.int64),
-        corner_planes=frame.corner_planes,
-        corner_points=transform_points(T_world_cam, frame.corner_points),
-        corner_convex_edges=frame.corner_convex_edges,
-        plane_weights=frame.areas,
-        edge_planes=frame.edge_planes,
-        edge_segments=transform_points(T_world_cam, frame.edge_segments),
-        edge_lengths=frame.edge_lengths,
-        edge_angles=frame.edge_angles,
-        edge_convex=frame.edge_convex,
-        object_classes=frame.object_classes,
-        object_sizes=frame.object_sizes,
-        object_centres=transform_points(T_world_cam, frame.object_centres),
-    )
 
 
 class Segment:

@@ -50,7 +50,7 @@ from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, transform_points
 from planeslam.core.plane_fit import patch_covariance
-from planeslam.core.types import TrackingPath
+from planeslam.core.types import LoopConstraint, TrackingPath
 from planeslam.tracking.association import (
     Association,
     associate_with_corners,
@@ -80,6 +80,7 @@ from planeslam.tracking.keypoints import (
     point_residuals,
     ransac_pose,
 )
+from planeslam.tracking.loops import find_loop
 from planeslam.tracking.registration import (
     RegistrationResult,
     RegistrationStatus,
@@ -87,7 +88,7 @@ from planeslam.tracking.registration import (
     refine_icp,
 )
 from planeslam.tracking.relocalise import agreeing_matches, relocalisation_candidates
-from planeslam.tracking.views import FrameView, MapView
+from planeslam.tracking.views import FrameView, MapView, frame_as_map
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -254,6 +255,8 @@ class Tracker:
         self.thresholds = ConstraintThresholds(
             max_sigma_rad=np.radians(config.max_sigma_deg), max_sigma_m=config.max_sigma_m
         )
+        self._keyframe_frames: dict[int, FrameView] = {}
+        """Each keyframe's observation, camera frame (for loops: `find_loop`)."""
         self._previous_cloud: np.ndarray | None = None
         """(H, W, 3) organised cloud of the last tracked frame (ICP fallback)."""
         self._previous_rgbd: tuple[np.ndarray, np.ndarray] | None = None
@@ -278,6 +281,67 @@ class Tracker:
         computed them) or its images join the keypoint map."""
         if self.keypoint_map is not None:
             self.keypoint_map.add(index, T_world_cam, rgb, cloud, keypoints)
+
+    def keyframe_keypoints(
+        self, rgb: np.ndarray | None, cloud: np.ndarray | None, keypoints: Keypoints | None
+    ) -> Keypoints | None:
+        """A new keyframe's keypoints for loop detection (`config.loops`): `keypoints` if
+        tracking computed them, else detected in its (H, W, 3) RGB and organised cloud;
+        None when loops are off or there is no colour."""
+        if (
+            keypoints is not None
+            or not self.config.loops.enabled
+            or self.keypoint_map is None
+            or rgb is None
+            or cloud is None
+        ):
+            return keypoints
+        return self.keypoint_map.detector.detect(rgb, cloud)
+
+    def find_loop(
+        self,
+        index: int,
+        observation: FrameObservation,
+        keypoints: Keypoints | None,
+        T_world_cam: np.ndarray,
+    ) -> LoopConstraint | None:
+        """The loop constraint of new keyframe `index` (`observation`, its keypoints,
+        tracked at T_world_cam (4, 4)) against an older keyframe it revisits
+        (`loops.find_loop`), or None. With `loops.refine_planes` the points' relative pose
+        is refined by the robust estimate over both frames' planes, corners and edges and
+        the point matches (`joint`, the older keyframe's observation as the map), and
+        taken only when that is trusted and within `loops.refine_max_step_*` of it. The
+        keyframe's observation is kept for later loops against it."""
+        cfg = self.config
+        if keypoints is None or self.keypoint_map is None or not cfg.loops.enabled:
+            return None
+        frame = FrameView.of(observation, self.camera)
+        self._keyframe_frames[index] = frame
+
+        def refine(old: int, T_old_cam: np.ndarray, matches: PointMatches) -> np.ndarray | None:
+            old_frame = self._keyframe_frames.get(old)
+            if old_frame is None:
+                return None
+            solve = self.joint(
+                frame, frame_as_map(old_frame, np.eye(4)), T_old_cam, keypoints, matches
+            )
+            if solve is None:
+                return None
+            meters, degrees = pose_difference(T_old_cam, solve.T)
+            if meters > cfg.loops.refine_max_step_m or degrees > cfg.loops.refine_max_step_deg:
+                return None
+            return solve.T
+
+        return find_loop(
+            self.keypoint_map,
+            keypoints,
+            T_world_cam,
+            cfg.loops,
+            cfg.points,
+            self.sensor,
+            self.rng,
+            refine if cfg.loops.refine_planes else None,
+        )
 
     def move_keyframe(self, index: int, T_world_cam: np.ndarray) -> None:
         """The backend corrected keyframe `index` to T_world_cam (4, 4)."""

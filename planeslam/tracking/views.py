@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from planeslam.core.camera import CameraConfig
+from planeslam.core.geometry import transform_points
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -163,3 +164,27 @@ class FrameView:
                 [np.mean([corners[c].point for c in o.corners], axis=0) for o in objects]
             ).reshape(-1, 3),
         )
+
+
+def frame_as_map(frame: FrameView, T_world_cam: np.ndarray) -> MapView:
+    """A frame's planes, corners, edges and objects moved into the world by T_world_cam
+    (4, 4): the map of one keyframe."""
+    normals = frame.normals @ T_world_cam[:3, :3].T
+    return MapView(
+        plane_ids=frame.plane_ids,
+        normals=normals,
+        d=frame.d - normals @ T_world_cam[:3, 3],
+        corner_ids=np.arange(len(frame.corner_points), dtype=np.int64),
+        corner_planes=frame.corner_planes,
+        corner_points=transform_points(T_world_cam, frame.corner_points),
+        corner_convex_edges=frame.corner_convex_edges,
+        plane_weights=frame.areas,
+        edge_planes=frame.edge_planes,
+        edge_segments=transform_points(T_world_cam, frame.edge_segments),
+        edge_lengths=frame.edge_lengths,
+        edge_angles=frame.edge_angles,
+        edge_convex=frame.edge_convex,
+        object_classes=frame.object_classes,
+        object_sizes=frame.object_sizes,
+        object_centres=transform_points(T_world_cam, frame.object_centres),
+    )
