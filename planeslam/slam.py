@@ -206,6 +206,8 @@ class SLAM:
         self._joined_planes: list[tuple[int, int]] = []
         """(absorbed, surviving) map plane ids joined since the last keyframe went to the
         backend, which ties them in the graph with the next one."""
+        self._loops = self.backend.takes_loops and config.tracking.loops.enabled
+        """Whether keyframes look for loop constraints (`Tracker.find_loop`)."""
         self.loops: list[tuple[int, int]] = []
         """(keyframe, older keyframe) frame indices of every loop constraint sent to the
         backend."""
@@ -307,7 +309,9 @@ class SLAM:
         if index == 0 and not self._in_given_map:
             track = TrackResult(self._T_world_first, TrackingPath.FIRST, "first frame")
         else:
-            track = self.tracker.track(observation, self.map_view(), T_pred, rgb, depth_m)
+            track = self.tracker.track(
+                observation, self.map_view(), T_pred, rgb, depth_m, self._last_tracked
+            )
         joined = None
         if self._segment is not None or (track.lost and self.config.tracking.segments):
             track, joined = self._segment_step(index, observation, rgb, depth_m, track)
@@ -318,7 +322,7 @@ class SLAM:
         if keyframe:
             keypoints = track.keypoints
             if not self.localize:  # a localising run keeps keyframes for tracking only
-                if self.backend.takes_loops:
+                if self._loops:
                     t0 = time.perf_counter()
                     keypoints = self.tracker.keyframe_keypoints(rgb, observation.cloud, keypoints)
                     stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
@@ -441,7 +445,7 @@ class SLAM:
             T_world_cam = orthonormalize_pose(correction @ T_world_cam)
             stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         loop = None
-        if self.backend.takes_loops:
+        if self._loops:
             t0 = time.perf_counter()
             loop = self.tracker.find_loop(index, observation, keypoints, T_world_cam)
             if loop is not None:

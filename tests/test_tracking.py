@@ -420,3 +420,30 @@ def test_close_frames_take_a_plane_pose_only_within_the_jump_limit(
     loose = Tracker(TrackingConfig(fast_max_jump_m=0.1))  # 8 cm is within a 10 cm limit
     taken = loose._track(frame, map_view(), T_pred, None, None, frame_gap_s=0.033).reason == ""
     assert taken is (jump_m < 0.1)
+
+
+def test_a_close_frame_near_the_last_pose_takes_its_plane_pose(rng: np.random.Generator) -> None:
+    """The camera stopped: the constant-velocity prediction overshoots by 8 cm, the last
+    frame's pose is 2 cm from the plane pose. At 30 Hz that plane pose is taken at once
+    (within the jump limit of the last pose); with the last pose as far off as the
+    prediction, or frames farther apart, it needs the keypoints."""
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    direction = np.array([0.6, 0.0, 0.8])
+    T_pred, T_last, T_far = T.copy(), T.copy(), T.copy()
+    T_pred[:3, 3] += 0.08 * direction
+    T_last[:3, 3] += 0.02 * direction
+    T_far[:3, 3] -= 0.08 * direction
+    tracker = Tracker(TrackingConfig())
+    assert (
+        tracker._track(
+            frame, map_view(), T_pred, None, None, frame_gap_s=0.033, T_last=T_last
+        ).reason
+        == ""
+    )
+    assert tracker._track(
+        frame, map_view(), T_pred, None, None, frame_gap_s=0.033, T_last=T_far
+    ).reason
+    assert tracker._track(
+        frame, map_view(), T_pred, None, None, frame_gap_s=0.5, T_last=T_last
+    ).reason

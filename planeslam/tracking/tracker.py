@@ -817,10 +817,12 @@ class Tracker:
         T_pred: np.ndarray,
         rgb: np.ndarray | None = None,
         depth_m: np.ndarray | None = None,
+        T_last: np.ndarray | None = None,
     ) -> TrackResult:
         """Pose of `observation` against the map `view`, starting from the prediction
         T_pred (4, 4) T_world_cam; colour enables keypoints, colour and depth the RGB-D
-        odometry fallback."""
+        odometry fallback; T_last (4, 4), the last tracked frame's pose as the prediction
+        was made from it, also bounds the jump limit (`_near`)."""
         cfg = self.config
         frame = FrameView.of(observation, self.camera)
         cloud = observation.cloud if cfg.icp else None
@@ -832,7 +834,7 @@ class Tracker:
             detector, image, xyz = self.keypoint_map.detector, rgb, observation.cloud
             points = _LazyKeypoints(lambda: detector.detect(image, xyz))
         gap = observation.timestamp - self._previous_stamp
-        result = self._track(frame, view, T_pred, cloud, rgbd, points, gap)
+        result = self._track(frame, view, T_pred, cloud, rgbd, points, gap, T_last)
         self.prediction_valid = not result.lost
         if not result.lost:
             self._previous_cloud, self._previous_rgbd = cloud, rgbd
@@ -849,9 +851,10 @@ class Tracker:
         rgbd,
         points: _LazyKeypoints = _NO_POINTS,
         frame_gap_s: float = np.inf,
+        T_last: np.ndarray | None = None,
     ) -> TrackResult:
         """The steps of the module docstring, in order, on prepared inputs; `frame_gap_s`
-        the time since the last tracked frame [s]."""
+        the time since the last tracked frame [s], T_last (4, 4) its pose."""
         cfg = self.config
         if view.empty and self.keypoint_map is None and self.empty_map_starts:
             return TrackResult(T_pred, TrackingPath.FIRST, "empty map: the frame starts it")
@@ -863,7 +866,7 @@ class Tracker:
             and trusted.registration.status is RegistrationStatus.OK
             and self.prediction_valid  # after a loss the prediction is no evidence
             and (
-                self._near(trusted.T, T_pred, close_frames=frame_gap_s <= cfg.fast_max_gap_s)
+                self._near(trusted.T, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
                 or self._points_agree(trusted.T, points)
             )
         ):
@@ -989,14 +992,29 @@ class Tracker:
         matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
         return self._agreeing(T, keypoints, matches) >= self.config.points.min_inliers
 
-    def _near(self, T: np.ndarray, T_pred: np.ndarray, close_frames: bool = False) -> bool:
+    def _near(
+        self,
+        T: np.ndarray,
+        T_pred: np.ndarray,
+        close_frames: bool = False,
+        T_last: np.ndarray | None = None,
+    ) -> bool:
         """Whether T (4, 4) is within the fast path's correction of the prediction, or with
-        `close_frames` (at most `fast_max_gap_s` apart) within its jump limit."""
+        `close_frames` (at most `fast_max_gap_s` apart) within its jump limit of the
+        prediction or of the last frame's pose T_last (4, 4): the constant-velocity
+        prediction overshoots when the camera stops or turns back, the last pose does not."""
         meters, degrees = pose_difference(T_pred, T)
         cfg = self.config
         if meters <= cfg.fast_max_correction_m and degrees <= cfg.fast_max_correction_deg:
             return True
-        return close_frames and meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg
+        if not close_frames:
+            return False
+        if meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg:
+            return True
+        if T_last is None:
+            return False
+        meters, degrees = pose_difference(T_last, T)
+        return meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg
 
     def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
         """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""
