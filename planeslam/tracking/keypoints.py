@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -283,26 +282,25 @@ class KeypointMap:
             pairs = match_descriptors(keypoints.descriptors, ref.descriptors, ratio)
             if not len(pairs):
                 continue
-            R = kf.T_world_cam[:3, :3]
             rows = pairs[:, 1]
-            parts.append(
-                PointMatches(
-                    observed=pairs[:, 0],
-                    points_world=transform_points(kf.T_world_cam, ref.points_cam[rows]),
-                    covariances_world=np.einsum("ij,njk,lk->nil", R, ref.covariances[rows], R),
-                    keyframes=np.full(len(pairs), index, np.int64),
-                )
+            in_keyframe = PointMatches(
+                observed=pairs[:, 0],
+                points_world=ref.points_cam[rows],
+                covariances_world=ref.covariances[rows],
+                keyframes=np.full(len(pairs), index, np.int64),
             )
+            parts.append(in_keyframe.moved(kf.T_world_cam))
         return PointMatches.concatenate(parts)
 
     def vote(
         self,
         keypoints: Keypoints,
         count: int,
-        among: Collection[int] | None = None,
+        among: np.ndarray | None = None,
         strongest: int | None = None,
     ) -> list[int]:
-        """The `count` keyframes (anywhere in the map, or of `among`) holding the most
+        """The `count` keyframes (anywhere in the map, or of the (K,) frame indices `among`)
+        holding the most
         nearest neighbours of `keypoints`' descriptors (all, or the `strongest`) within
         `vote_max_distance` bits, best first."""
         import cv2
@@ -312,7 +310,7 @@ class KeypointMap:
             return []
         descriptors, owner = stack
         if among is not None:
-            mine = np.isin(owner, np.fromiter(among, np.int64, len(among)))
+            mine = np.isin(owner, among)
             if not mine.any():
                 return []
             descriptors, owner = descriptors[mine], owner[mine]

@@ -83,7 +83,7 @@ def find_loop(
         return None
     best: tuple[int, PointPose, PointMatches] | None = None
     for old in keypoint_map.vote(
-        keypoints, cfg.candidates, among=nearby.tolist(), strongest=points.vote_descriptors
+        keypoints, cfg.candidates, among=nearby, strongest=points.vote_descriptors
     ):
         matches = keypoint_map.matches(keypoints, [old])
         if len(matches) < cfg.min_inliers:
@@ -105,9 +105,10 @@ def find_loop(
         return None
     old, found, matches = best
     T_world_old = keypoint_map.pose(old)
-    T_old_cam = invert_pose(T_world_old) @ found.T_world_cam
+    T_old_world = invert_pose(T_world_old)
+    T_old_cam = T_old_world @ found.T_world_cam
     if refine is not None:
-        refined = refine(old, T_old_cam, matches.moved(invert_pose(T_world_old)))
+        refined = refine(old, T_old_cam, matches.moved(T_old_world))
         if refined is None:
             return None
         T_old_cam = refined

@@ -285,16 +285,10 @@ class Tracker:
     def keyframe_keypoints(
         self, rgb: np.ndarray | None, cloud: np.ndarray | None, keypoints: Keypoints | None
     ) -> Keypoints | None:
-        """A new keyframe's keypoints for loop detection (`config.loops`): `keypoints` if
+        """A new keyframe's keypoints for loop detection (`find_loop`): `keypoints` if
         tracking computed them, else detected in its (H, W, 3) RGB and organised cloud;
-        None when loops are off or there is no colour."""
-        if (
-            keypoints is not None
-            or not self.config.loops.enabled
-            or self.keypoint_map is None
-            or rgb is None
-            or cloud is None
-        ):
+        None without keypoints (`points.enabled`) or colour."""
+        if keypoints is not None or self.keypoint_map is None or rgb is None or cloud is None:
             return keypoints
         return self.keypoint_map.detector.detect(rgb, cloud)
 
