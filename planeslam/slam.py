@@ -668,6 +668,7 @@ def map_view(world_map: Map) -> MapView:
     row = {int(pid): k for k, pid in enumerate(ids)}
     edges = list(world_map.edges.values())
     objects = [o for o in world_map.objects if o.corners and all(c in corners for c in o.corners)]
+    culled_normals, culled_d, culled_areas = world_map.culled_plane_arrays()
     return MapView(
         ids,
         normals,
@@ -689,6 +690,9 @@ def map_view(world_map: Map) -> MapView:
         object_centres=np.array(
             [np.mean([corners[c].point for c in o.corners], axis=0) for o in objects]
         ).reshape(-1, 3),
+        culled_normals=culled_normals,
+        culled_d=culled_d,
+        culled_areas=culled_areas,
     )
 
 

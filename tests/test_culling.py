@@ -30,6 +30,21 @@ def test_single_view_planes_leave_after_the_given_frames_with_their_edges_and_co
     assert cull_single_view(contents, 10) == [1]
     assert sorted(contents.planes) == [0, 2, 3]
     assert list(contents.edges) == [(0, 2)] and contents.corners == {}
+    assert list(contents.culled) == [1]  # remembered: seen again, it is not new
+
+
+def test_a_plane_culled_again_is_remembered_once():
+    first = replace(patch(0, [0, 0, 0], [1, 0, 0], [0, 1, 0], 1), seen_in=frozenset({0}))
+    again = replace(patch(1, [0.1, 0, 0.01], [1, 0, 0], [0, 1, 0], 1), seen_in=frozenset({3}))
+    apart = replace(patch(2, [3, 0, 0], [1, 0, 0], [0, 1, 0], 1), seen_in=frozenset({3}))
+    above = replace(patch(3, [0, 0, 0.3], [1, 0, 0], [0, 1, 0], 1), seen_in=frozenset({3}))
+    contents = contents_with(first)
+    contents.frames_merged = 2
+    assert cull_single_view(contents, 1) == [0]
+    contents.planes = {p.id: p for p in (again, apart, above)}
+    contents.frames_merged = 5
+    assert cull_single_view(contents, 1) == [1, 2, 3]
+    assert sorted(contents.culled) == [0, 2, 3]  # 1 is the same patch, 1 cm up and 10 cm on
 
 
 def test_cull_setting_is_checked():

@@ -113,6 +113,21 @@ def test_noisy_planes_track_within_a_centimetre(rng: np.random.Generator) -> Non
     assert_pose_close(result.T_world_cam, T, 0.01, 0.5)
 
 
+def test_planes_the_map_culled_are_not_counted_as_new(rng: np.random.Generator) -> None:
+    """The box's planes left out of the map: new, unless the map remembers them culled."""
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    room = MapView(
+        np.arange(10, 13), NORMALS[:3], D[:3], np.array([100]), CORNERS[:1], CORNER_POINTS[:1]
+    )
+    tracker = Tracker(TrackingConfig())
+    assert tracker._track(frame, room, T, None, None).new_planes == 3
+    culled = dataclasses.replace(
+        room, culled_normals=NORMALS[3:5], culled_d=D[3:5], culled_areas=np.ones(2)
+    )
+    assert tracker._track(frame, culled, T, None, None).new_planes == 1  # the side y = 0.8
+
+
 def test_far_prediction_relocalises_from_corners(rng: np.random.Generator) -> None:
     """1 m and 60 deg off: the gates reject every pair, a corner hypothesis finds the pose."""
     T = camera_pose()

@@ -29,6 +29,10 @@ class MapContents:
     edges: dict[tuple[int, int], MapEdge] = field(default_factory=dict)
     """Keyed by the two plane ids, smaller first."""
     corners: dict[int, MapCorner] = field(default_factory=dict)
+    culled: dict[int, MapPlane] = field(default_factory=dict)
+    """Planes culled as seen by one keyframe only (`culling`), as they were then: not in
+    the map (nor saved with it), but a later frame that sees one again does not see a plane
+    new to the map."""
     objects: list[MapObject] = field(default_factory=list)
     """Of the last re-aggregation; ids 0..K-1."""
     next_plane_id: int = 0

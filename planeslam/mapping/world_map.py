@@ -137,6 +137,16 @@ class Map:
         """(ids (M,) int64, normals (M, 3), d (M,)), world frame, rows by increasing id."""
         return self._contents.plane_arrays()
 
+    def culled_plane_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(normals (C, 3), d (C,) [m], areas (C,) [m^2]) of the planes culled as seen by one
+        keyframe only (`MapConfig.cull_single_view_after`), world frame."""
+        planes = list(self._contents.culled.values())
+        return (
+            np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3),
+            np.array([p.d for p in planes], dtype=np.float64),
+            np.array([p.area_m2 for p in planes], dtype=np.float64),
+        )
+
     def corner_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids (K,) int64, planes (K, 3) int64 ROW INDICES into `plane_arrays`, points (K, 3)
         world frame [m]), rows by increasing corner id."""

@@ -372,11 +372,38 @@ class Tracker:
         """(N, M) bool: an observed plane may only match a map plane at least about its size
         (map outlines grow as planes merge, so a big observation never belongs to a small
         map plane: a floor is not a box top). None when sizes are unknown."""
-        if frame.areas is None or view.plane_weights is None:
+        return self._size_gate_of(frame, view.plane_weights)
+
+    def _size_gate_of(self, frame: FrameView, areas: np.ndarray | None) -> np.ndarray | None:
+        """`_size_gate` against map planes of these areas (M,) [m^2]."""
+        if frame.areas is None or areas is None:
             return None
         cfg = self.config
-        limit = cfg.size_gate_ratio * view.plane_weights + cfg.size_gate_margin_m2
+        limit = cfg.size_gate_ratio * areas + cfg.size_gate_margin_m2
         return frame.areas[:, None] <= limit[None, :]
+
+    def _matchable(
+        self,
+        frame: FrameView,
+        normals: np.ndarray,
+        d: np.ndarray,
+        areas: np.ndarray | None,
+        T_world_cam: np.ndarray,
+    ) -> np.ndarray:
+        """(N,) bool: which observed planes have a world plane (normals (M, 3), d (M,) [m],
+        areas (M,) [m^2] or None) within the association gates at T_world_cam (4, 4)."""
+        cfg = self.config
+        _, allowed = plane_association_cost(
+            normals,
+            d,
+            frame.normals,
+            frame.d,
+            T_world_cam,
+            np.radians(cfg.max_angle_deg),
+            cfg.max_offset_m,
+            gate=self._size_gate_of(frame, areas),
+        )
+        return np.asarray(allowed.any(axis=1), dtype=bool)
 
     def _solve(
         self, frame: FrameView, view: MapView, assoc: Association, T_prior: np.ndarray
@@ -1038,21 +1065,14 @@ class Tracker:
         keypoints: Keypoints | None,
     ) -> TrackResult:
         """TrackResult with the correspondences of the final pose and the count of planes
-        the map does not have yet."""
-        cfg = self.config
-        new_planes = len(frame.plane_ids)
-        if not view.empty:
-            _, allowed = plane_association_cost(
-                view.normals,
-                view.d,
-                frame.normals,
-                frame.d,
-                T_final,
-                np.radians(cfg.max_angle_deg),
-                cfg.max_offset_m,
-                gate=self._size_gate(frame, view),
-            )
-            new_planes = int(np.count_nonzero(~allowed.any(axis=1)))
+        the map does not have yet (nor culled as seen once: clutter seen again)."""
+        new = np.ones(len(frame.plane_ids), dtype=bool)
+        for normals, d, areas in (
+            (view.normals, view.d, view.plane_weights),
+            (view.culled_normals, view.culled_d, view.culled_areas),
+        ):
+            if new.any() and len(d):
+                new &= ~self._matchable(frame, normals, d, areas, T_final)
         return TrackResult(
             T_world_cam=T_final,
             path=path,
@@ -1061,7 +1081,7 @@ class Tracker:
                 (int(frame.plane_ids[i]), int(view.plane_ids[j])) for i, j in assoc.planes
             ],
             corner_pairs=[(int(i), int(view.corner_ids[j])) for i, j in assoc.corners],
-            new_planes=new_planes,
+            new_planes=int(np.count_nonzero(new)),
             constraints=found,
             keypoints=keypoints,
         )

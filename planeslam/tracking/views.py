@@ -59,6 +59,12 @@ class MapView:
     """Its sizes [m], largest first."""
     object_centres: np.ndarray = _zeros(0, 3)
     """(O, 3) mean of its corner points [m]."""
+    culled_normals: np.ndarray = _zeros(0, 3)
+    """(C, 3) unit normals of planes the map culled (seen once): not new when seen again."""
+    culled_d: np.ndarray = _zeros(0)
+    """(C,) their offsets [m]."""
+    culled_areas: np.ndarray = _zeros(0)
+    """(C,) their areas [m^2]."""
 
     @property
     def empty(self) -> bool:
