@@ -396,6 +396,28 @@ def test_the_fast_path_weights_planes_by_their_patch_covariance(rng: np.random.G
     assert refined_m < 0.3 * closed_m  # 4.7 against 17.8 mm
 
 
+def test_the_jump_limit_judges_the_refined_pose(rng: np.random.Generator) -> None:
+    """The far patch pulls the closed form beyond a 1 cm jump limit of the prediction (the
+    truth here); with `refine_planes` the pose the fast path would take is the refined one,
+    within the limit, so the fast path takes it."""
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 4], rng)
+    T_cam_world = invert_pose(T)
+    world_points = np.array([[1.0, 1.0, 0.0], [0.0, 1.0, 0.6], [1.0, 0.0, 0.6], [1.0, 0.6, 0.1]])
+    frame = dataclasses.replace(
+        frame,
+        d=frame.d + np.array([0.0, 0.0, 0.0, 0.04]),
+        covariances=np.broadcast_to(1e-8 * np.eye(3), (4, 3, 3)),
+        centroids=world_points @ T_cam_world[:3, :3].T + T_cam_world[:3, 3],
+        areas=np.array([2.0, 2.0, 2.0, 0.01]),
+    )
+    limits = {"fast_max_jump_m": 0.01, "fast_max_correction_m": 0.001}
+    for refine, fast in ((False, False), (True, True)):
+        tracker = Tracker(TrackingConfig(refine_planes=refine, **limits))
+        result = tracker._track(frame, map_view(), T, None, None, frame_gap_s=0.033)
+        assert (result.reason == "") is fast, result.reason
+
+
 def test_a_refinement_that_pulls_away_from_closed_form_and_prediction_is_refused(
     rng: np.random.Generator,
 ) -> None:

@@ -223,11 +223,11 @@ class TrackingConfig:
     (`core.plane_fit.patch_covariance`: large near planes count most, small far patches
     little) plus `refine_floor_*`. On the TUM fr1 clips it takes out the closed form's
     per-frame jitter (up to 5 cm along directions only small patches fix): 0.26 / 0.51 cm
-    against 1.99 / 1.45 (xyz / desk), ICL-NUIM 1.09 against 1.72 cm, 7-Scenes 4.65 against
-    5.16 cm (measured before `fast_max_jump_*`). Off by default: the five-pass 7-Scenes
-    replay (`planeslam bench long`) goes wrong with it in its third pass (145 and 299
-    keyframes in the third and fourth 1,000 frames, 2,740 planes), and with a 1 cm floor or
-    without the prediction rule below in its second (README, "Figures")."""
+    against 1.99 / 1.45 (xyz / desk), ICL-NUIM 1.65 against 1.70 cm. The jump limit
+    (`fast_max_jump_*`) then judges the refined pose. Off by default: 7-Scenes at 30 Hz gets
+    5.75 cm against 3.76, and the five-pass 7-Scenes replay (`planeslam bench long`) goes
+    wrong from its second pass (122 keyframes, 2.26x the planes after five; README,
+    "Figures")."""
     refine_floor_deg: float = 0.17
     """Normal noise added to every plane in the refinement: the map plane's and the
     pose's own error [deg] ..."""

@@ -13,7 +13,8 @@ Per frame:
    the pose within `fast_max_jump_*` of the prediction (30 Hz: the motion since is a few
    cm, and a pose somewhat off the prediction reflects the map's own corrections), or the
    pose is within `fast_max_correction_*` of the prediction, or keypoint matches with the
-   last keyframe agree with it.
+   last keyframe agree with it (with `refine_planes`, "the pose" is the refined one: the
+   pose that would be taken, not a differently weighted one beside it).
 2. One robust estimate over every primitive (`estimator.estimate_pose`): planes, corners
    and edge ends associated under a start pose, and keypoints with depth matched against
    the most recent keyframes, each weighted by its covariance. Start poses: the partial
@@ -882,24 +883,29 @@ class Tracker:
         reasons: list[str] = []
         solve = self.register(frame, view, T_pred) if not view.empty else None
         trusted = solve if solve is not None and _trusted(solve.registration, cfg) else None
+        T_fast = None
         if (
             trusted is not None
             and trusted.registration.status is RegistrationStatus.OK
             and self.prediction_valid  # after a loss the prediction is no evidence
+        ):
+            T_fast = self._refined(frame, view, trusted, T_pred) if cfg.refine_planes else trusted.T
+        if (
+            T_fast is not None
+            and trusted is not None
             and (
-                self._near(trusted.T, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
-                or self._points_agree(trusted.T, points)
+                self._near(T_fast, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
+                or self._points_agree(T_fast, points)
             )
         ):
             terms = {
                 "planes": len(trusted.association.planes),
                 "corners": len(trusted.association.corners),
             }
-            T = self._refined(frame, view, trusted, T_pred) if cfg.refine_planes else trusted.T
             return self._result(
                 frame,
                 view,
-                T,
+                T_fast,
                 trusted.association,
                 TrackingPath.PLANES,
                 "",
