@@ -61,6 +61,7 @@ from planeslam.frontend.pipeline import FrameObservation, FrontEnd
 from planeslam.io.dataset import Frame
 from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import Trajectory
+from planeslam.mapping.config import MapConfig
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
 from planeslam.tracking.estimator import PoseConstraints
@@ -169,14 +170,18 @@ class SLAM:
         self.tracker = Tracker(
             config.tracking, odometry, config.camera, config.sensor, config.run.seed
         )
-        self.map = map if map is not None else Map(config.map, config.objects)
+        self.backend: Backend = create_backend(backend or config.run.backend, config.backend)
+        self._in_given_map = map is not None
+        self.map = (
+            map
+            if map is not None
+            else Map(map_config_for(config.map, self.backend), config.objects)
+        )
         self.map.sensor = config.sensor  # also a given map's: it merges this run's frames
         self.localize = localize
         """Track in `map` without changing it."""
-        self._in_given_map = map is not None
         if self._in_given_map:
             self.tracker.expect_jump()
-        self.backend: Backend = create_backend(backend or config.run.backend, config.backend)
         self._stop_backend = weakref.finalize(self, self.backend.close)
         """Stops the backend process when the SLAM is closed, finished or dropped."""
         self._finished = False
@@ -657,6 +662,22 @@ class RunTally:
             finish_ms=self.finish_ms,
             skipped_frames=self.skipped_frames,
         )
+
+
+def map_config_for(config: MapConfig, backend: Backend) -> MapConfig:
+    """`config` with the settings it leaves to the backend (null) set to the backend's
+    choice (`Backend.map_cull_single_view_after`, `map_merge_segments`)."""
+    return dataclasses.replace(
+        config,
+        cull_single_view_after=(
+            backend.map_cull_single_view_after
+            if config.cull_single_view_after is None
+            else config.cull_single_view_after
+        ),
+        merge_segments=(
+            backend.map_merge_segments if config.merge_segments is None else config.merge_segments
+        ),
+    )
 
 
 def map_view(world_map: Map) -> MapView:

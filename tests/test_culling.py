@@ -9,10 +9,13 @@ import numpy as np
 import pytest
 from test_segment_merge import contents_with, edge, patch
 
+from planeslam.backend.base import create_backend
+from planeslam.backend.config import BackendConfig
 from planeslam.core.errors import ConfigError
 from planeslam.mapping.config import MapConfig
 from planeslam.mapping.culling import cull_single_view
 from planeslam.mapping.records import MapCorner
+from planeslam.slam import map_config_for
 
 
 def test_single_view_planes_leave_after_the_given_frames_with_their_edges_and_corners():
@@ -50,3 +53,24 @@ def test_a_plane_culled_again_is_remembered_once():
 def test_cull_setting_is_checked():
     with pytest.raises(ConfigError, match="cull_single_view_after"):
         MapConfig(cull_single_view_after=-1)
+    with pytest.raises(ConfigError, match="merge_segments"):
+        MapConfig(merge_segments=1)  # type: ignore[arg-type]
+
+
+def test_the_backend_chooses_culling_and_segment_merge_unless_the_config_does():
+    """null (the default): iSAM2 culls after 5 keyframes and merges segments; the paper's
+    merge backend, which merges every frame and never revises a pose, does neither."""
+    isam2, merge = (
+        create_backend("isam2", BackendConfig()),
+        create_backend("merge", BackendConfig()),
+    )
+    try:
+        chosen = map_config_for(MapConfig(), isam2)
+        assert (chosen.cull_single_view_after, chosen.merge_segments) == (5, True)
+        chosen = map_config_for(MapConfig(), merge)
+        assert (chosen.cull_single_view_after, chosen.merge_segments) == (0, False)
+        explicit = MapConfig(cull_single_view_after=10, merge_segments=False)
+        assert map_config_for(explicit, isam2) == explicit
+    finally:
+        isam2.close()
+        merge.close()

@@ -107,6 +107,11 @@ class Backend(Protocol):
     """Whether the map re-aggregates its objects at every merge (otherwise at `finish`)."""
     takes_loops: bool
     """Whether `KeyframeInput.loops` reach its poses (the merge backend never revises one)."""
+    map_cull_single_view_after: int
+    """`map.cull_single_view_after` when the config leaves it to the backend (null): 5
+    keyframes with isam2; 0 with merge, which merges every frame and never revises one."""
+    map_merge_segments: bool
+    """`map.merge_segments` when the config leaves it to the backend (null)."""
 
     def is_keyframe(
         self, T_keyframes: np.ndarray, T_now: np.ndarray, frames_since: int, new_planes: int

@@ -21,6 +21,8 @@ class MergeBackend:
     lag_frames = 0
     objects_every_keyframe = True
     takes_loops = False
+    map_cull_single_view_after = 0
+    map_merge_segments = False
 
     def __init__(self) -> None:
         self._poses: dict[int, np.ndarray] = {}

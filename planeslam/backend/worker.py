@@ -80,6 +80,8 @@ class Isam2Worker:
     kind = BackendKind.ISAM2
     objects_every_keyframe = False
     takes_loops = True
+    map_cull_single_view_after = 5
+    map_merge_segments = True
 
     def __init__(self, config: BackendConfig, inline: bool = False) -> None:
         self.config = config

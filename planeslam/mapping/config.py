@@ -44,22 +44,26 @@ class MapConfig:
     consolidate_max_gap_m: float = 0.10
     """... and outlines (convex hulls on the map plane) overlapping or at most this far
     apart [m]."""
-    cull_single_view_after: int = 0
+    cull_single_view_after: int | None = None
     """N > 0: a plane that only the frame which made it has seen leaves the map (with its
     edges and corners) when N more frames have been merged without seeing it again
-    (`culling`); 0 keeps every plane. A culled plane is remembered, so that a frame that
-    sees it again does not count it as new (no keyframe for clutter). Off by default: with
-    10 and `merge_segments`, the single 7-Scenes pass keeps 419 planes instead of 774 but
-    at 5.2 cm against 3.8, and the five-pass replay grows by 1.29x (1.39x) at 6.1 cm
-    against 4.8 cm (README, "Long runs")."""
-    merge_segments: bool = False
+    (`culling`; ORB-SLAM culls recent map points so); 0 keeps every plane; None: the
+    backend's choice (`Backend.map_cull_single_view_after`: 5 keyframes with isam2, 0 with
+    merge, whose every frame is merged). A culled plane is remembered, so that a frame that
+    sees it again does not count it as new (no keyframe for clutter). With isam2 and
+    `merge_segments` (both the default since 2026-12-02): the single 7-Scenes pass keeps 325
+    planes instead of 774 (ATE 4.10 against 3.76 cm; every 10th / 20th / 30th frame 3.86 /
+    3.08 / 3.52 against 3.58 / 3.92 / 3.78 cm), the five-pass replay 325 -> 406 (1.25x)
+    instead of 774 -> 1,079 (1.39x) at the same ATE (4.84 / 4.83 cm; README, "Long runs").
+    With the merge backend they cost accuracy (ICL-NUIM 2.33 against 0.89 cm)."""
+    merge_segments: bool | None = None
     """After the backend moved a keyframe's planes, a map plane that came to lie on another
-    one's segment (outlines as above) is merged into it (`segment_merge`) ... Off by
-    default: on the five-pass 7-Scenes replay it keeps 1,008 planes instead of 1,362 and
-    the ATE at 5.5 instead of 6.8 cm, but single runs drift more in absolute orientation
-    (7-Scenes: 21 of every 10th frame within 5 cm / 3 deg of the truth against 43, so
-    relocalisation in its map places 22 against 51) and lose about a centimetre at wide
-    baselines (README, "Long runs")."""
+    one's segment (outlines as above) is merged into it (`segment_merge`), and the backend
+    ties the two landmarks (`backend.tie_joined_planes`); None: the backend's choice
+    (`Backend.map_merge_segments`: on with isam2, off with merge). Alone (without culling)
+    it kept 1,008 planes instead of 1,362 on the five-pass replay at 5.5 instead of 6.8 cm,
+    but lost about a centimetre at wide baselines (before the last-pose rule; README, "Long
+    runs")."""
     merge_segments_max_angle_deg: float = 2.0
     """... when their normals are within this [deg] ..."""
     merge_segments_max_offset_m: float = 0.02
@@ -84,12 +88,18 @@ class MapConfig:
             raise ConfigError(
                 f"map.min_observations must be a whole number >= 1, got {self.min_observations!r}"
             )
-        if isinstance(self.cull_single_view_after, bool) or not (
-            isinstance(self.cull_single_view_after, int) and self.cull_single_view_after >= 0
+        cull = self.cull_single_view_after
+        if cull is not None and (
+            isinstance(cull, bool) or not (isinstance(cull, int) and cull >= 0)
         ):
             raise ConfigError(
-                "map.cull_single_view_after must be a whole number >= 0 (frames), got "
-                f"{self.cull_single_view_after!r}"
+                "map.cull_single_view_after must be a whole number >= 0 (frames) or null (the "
+                f"backend's choice), got {cull!r}"
+            )
+        if self.merge_segments is not None and not isinstance(self.merge_segments, bool):
+            raise ConfigError(
+                "map.merge_segments must be true, false or null (the backend's choice), got "
+                f"{self.merge_segments!r}"
             )
         for name in (
             "consolidate_max_sigmas",

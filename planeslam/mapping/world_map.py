@@ -197,7 +197,7 @@ class Map:
         unknown indices / ids or pairing one plane twice.
         """
         merged = merge_frame(self._contents, observation, T_world_cam, plane_pairs, corner_pairs)
-        cull_single_view(self._contents, self.config.cull_single_view_after)
+        cull_single_view(self._contents, self.config.cull_single_view_after or 0)
         self._revision += 1
         if reaggregate:
             self.reaggregate()
