@@ -32,10 +32,7 @@ def cull_single_view(contents: MapContents, after: int) -> list[int]:
     if not gone:
         return []
     dropped = set(gone)
-    for pid in gone:
-        plane = contents.planes.pop(pid)
-        if not _remembered(contents, plane):
-            contents.culled[pid] = plane
+    _remember(contents, [contents.planes.pop(pid) for pid in gone])
     contents.edges = {k: e for k, e in contents.edges.items() if not dropped.intersection(k)}
     contents.corners = {
         cid: c for cid, c in contents.corners.items() if not dropped.intersection(c.planes)
@@ -43,17 +40,28 @@ def cull_single_view(contents: MapContents, after: int) -> list[int]:
     return gone
 
 
-def _remembered(contents: MapContents, plane: MapPlane) -> bool:
-    """Whether a culled plane already remembered has `plane`'s infinite plane (within the
-    consolidation gate's angle and offset) and contains its centroid's footprint: a revisit
-    culls the same clutter again."""
+def _remember(contents: MapContents, planes: list[MapPlane]) -> None:
+    """Keep the culled `planes` in `contents.culled`, each unless a plane remembered before
+    it has its infinite plane (within the consolidation gate's angle and offset) and
+    contains its centroid's footprint (within sqrt(area) of its centroid): a revisit culls
+    the same clutter again. One pass over arrays of the remembered planes."""
     cfg = contents.config
     cos_max = np.cos(np.radians(cfg.consolidate_max_angle_deg))
-    for old in contents.culled.values():
-        if (
-            float(old.normal @ plane.normal) >= cos_max
-            and abs(float(old.normal @ plane.centroid) + old.d) <= cfg.consolidate_max_offset_m
-            and np.linalg.norm(old.centroid - plane.centroid) <= np.sqrt(old.area_m2)
-        ):
-            return True
-    return False
+    old = list(contents.culled.values())
+    normals = np.array([p.normal for p in old], dtype=np.float64).reshape(-1, 3)
+    offsets = np.array([p.d for p in old], dtype=np.float64)
+    centroids = np.array([p.centroid for p in old], dtype=np.float64).reshape(-1, 3)
+    reach = np.sqrt(np.array([p.area_m2 for p in old], dtype=np.float64))
+    for plane in planes:
+        covered = (
+            (normals @ plane.normal >= cos_max)
+            & (np.abs(normals @ plane.centroid + offsets) <= cfg.consolidate_max_offset_m)
+            & (np.linalg.norm(centroids - plane.centroid, axis=1) <= reach)
+        )
+        if covered.any():
+            continue
+        contents.culled[plane.id] = plane
+        normals = np.vstack([normals, plane.normal])
+        offsets = np.append(offsets, plane.d)
+        centroids = np.vstack([centroids, plane.centroid])
+        reach = np.append(reach, np.sqrt(plane.area_m2))

@@ -366,17 +366,14 @@ class Tracker:
             cfg.max_offset_m,
             cfg.max_corner_distance_m,
             weights=frame.weights,
-            gate=self._size_gate(frame, view),
+            gate=self._size_gate(frame, view.plane_weights),
         )
 
-    def _size_gate(self, frame: FrameView, view: MapView) -> np.ndarray | None:
-        """(N, M) bool: an observed plane may only match a map plane at least about its size
-        (map outlines grow as planes merge, so a big observation never belongs to a small
-        map plane: a floor is not a box top). None when sizes are unknown."""
-        return self._size_gate_of(frame, view.plane_weights)
-
-    def _size_gate_of(self, frame: FrameView, areas: np.ndarray | None) -> np.ndarray | None:
-        """`_size_gate` against map planes of these areas (M,) [m^2]."""
+    def _size_gate(self, frame: FrameView, areas: np.ndarray | None) -> np.ndarray | None:
+        """(N, M) bool: an observed plane may only match a map plane (of these areas (M,)
+        [m^2]) at least about its size (map outlines grow as planes merge, so a big
+        observation never belongs to a small map plane: a floor is not a box top). None
+        when sizes are unknown."""
         if frame.areas is None or areas is None:
             return None
         cfg = self.config
@@ -402,7 +399,7 @@ class Tracker:
             T_world_cam,
             np.radians(cfg.max_angle_deg),
             cfg.max_offset_m,
-            gate=self._size_gate_of(frame, areas),
+            gate=self._size_gate(frame, areas),
         )
         return np.asarray(allowed.any(axis=1), dtype=bool)
 
@@ -1036,12 +1033,8 @@ class Tracker:
             return True
         if not close_frames:
             return False
-        if meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg:
-            return True
-        if T_last is None:
-            return False
-        meters, degrees = pose_difference(T_last, T)
-        return meters <= cfg.fast_max_jump_m and degrees <= cfg.fast_max_jump_deg
+        jumps = [(meters, degrees)] + ([] if T_last is None else [pose_difference(T_last, T)])
+        return any(m <= cfg.fast_max_jump_m and d <= cfg.fast_max_jump_deg for m, d in jumps)
 
     def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
         """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""
