@@ -16,8 +16,9 @@ A keyframe's update is applied `lag_frames` frames later (or at the next keyfram
 keyframe takes its optimised pose, the planes and corners it saw move onto their
 landmarks, and the pose tracked since moves by the keyframe's correction; map planes that
 came to lie on one segment then merge (`Map.merge_same_segments`), and the next keyframe
-takes those joins to the graph. Every frame's pose is re-anchored on its final keyframe
-pose.
+takes those joins to the graph. Every frame's pose is re-anchored on the final pose of
+its anchor: the keyframe nearest to it in pose (on a revisit, the keyframe made there
+before rather than the last one, which may be hundreds of frames back).
 
 `SLAM.process(depth_m, timestamp, rgb)` needs no dataset folder (live cameras, other
 sources); `run_frames` drives it over an `RgbdDataset` (folder or bag). Poses are
@@ -51,6 +52,7 @@ from planeslam.backend.base import (
     KeyframeUpdate,
     create_backend,
 )
+from planeslam.backend.keyframes import nearest_keyframe
 from planeslam.config import PlaneSlamConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError, FrameReadError, PlaneSlamError
 from planeslam.core.frame_checks import check_depth_units, check_rgb, clean_depth
@@ -122,6 +124,10 @@ class FrameResult:
     constraints: PoseConstraints | None = None
     """Which degrees of freedom the planes fixed and what fixed the rest (None: first or
     lost frame)."""
+    anchor: int | None = None
+    """The keyframe (its `index`) whose final pose this frame's pose follows in
+    `SLAM.trajectory`: the frame itself if a keyframe, else the keyframe nearest in pose
+    (None: lost before any keyframe)."""
 
     @property
     def lost(self) -> bool:
@@ -140,6 +146,7 @@ class FrameResult:
             "frontend_reason": self.observation.reason,
             "stage_ms": {k: round(v, 3) for k, v in self.stage_ms.items()},
             "constraints": None if self.constraints is None else self.constraints.to_record(),
+            "anchor": self.anchor,
         }
 
 
@@ -353,6 +360,7 @@ class SLAM:
             stage_ms=stage_ms,
             rgb=rgb,
             constraints=track.constraints,
+            anchor=self._anchor[-1] if self._anchor[-1] >= 0 else None,
         )
 
     def _check_timestamp(self, timestamp: float) -> float:
@@ -562,12 +570,21 @@ class SLAM:
             self._last_keyframe = index
             self._set_keyframe_online(index, T_world_cam)
             self._keyframe_final[index] = T_world_cam
-        anchor = self._last_keyframe
+        anchor = self._anchor_of(T_world_cam, keyframe, lost)
         assert anchor is not None or lost, "the first tracked frame is always a keyframe"
         self._stamps.append(float(timestamp))
         self._anchor.append(-1 if anchor is None else anchor)  # -1: lost before any keyframe
         T_anchor = np.eye(4) if anchor is None else self._keyframe_online[anchor]
         self._T_anchor_cam.append(invert_pose(T_anchor) @ T_world_cam)
+
+    def _anchor_of(self, T_world_cam: np.ndarray, keyframe: bool, lost: bool) -> int | None:
+        """The keyframe (frame index) whose final pose a frame's pose at T_world_cam (4, 4)
+        will follow: a keyframe itself, a tracked frame the keyframe nearest in pose
+        (`nearest_keyframe`), a lost frame the last keyframe; None before any keyframe."""
+        if keyframe or lost or len(self._keyframe_online) < 2:
+            return self._last_keyframe
+        indices = list(self._keyframe_online)
+        return indices[nearest_keyframe(self.config.backend, self._keyframe_poses(), T_world_cam)]
 
     def finish(self) -> float:
         """End of the sequence: the backend's final optimisation (iSAM2: a batch over the

@@ -14,7 +14,7 @@ from test_map import make_plane, observation, rect_points
 
 from planeslam.app.bench_long import pass_order, replay_sequence
 from planeslam.backend.config import BackendConfig
-from planeslam.backend.keyframes import is_keyframe
+from planeslam.backend.keyframes import is_keyframe, nearest_keyframe
 from planeslam.core.geometry import convex_polygon_gap, pose_from_quat
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import read_tum
@@ -87,6 +87,16 @@ def test_a_revisit_that_sees_nothing_new_is_no_keyframe() -> None:
     assert not is_keyframe(config, pose(1.0), pose(1.01), 1, 0, earlier)  # too close
     off = BackendConfig(keyframe_skip_revisits=False)
     assert is_keyframe(off, pose(1.0), pose(0.01), 20, 0, earlier)
+
+
+def test_the_nearest_keyframe_weighs_metres_and_degrees_by_the_keyframe_spacing() -> None:
+    config = BackendConfig()  # a keyframe every 5 cm or 5 deg
+    keyframes = np.stack([pose(0.0), pose(0.5), pose(0.12), pose(0.0, yaw_deg=20.0)])
+    assert nearest_keyframe(config, keyframes, pose(0.49)) == 1
+    assert nearest_keyframe(config, keyframes, pose(0.02, yaw_deg=4.0)) == 0
+    assert nearest_keyframe(config, keyframes, pose(0.1, yaw_deg=2.0)) == 2
+    # 12 deg from the first (2.4 spacings), 8 deg from the fourth (1.6)
+    assert nearest_keyframe(config, keyframes, pose(0.0, yaw_deg=12.0)) == 3
 
 
 @pytest.mark.parametrize("background", [False, True])

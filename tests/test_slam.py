@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import assert_pose_close
 
 from planeslam.app.runner import run_sequence
 from planeslam.config import PlaneSlamConfig, resolve_config
@@ -230,3 +231,26 @@ def test_a_revisit_sends_loop_constraints_that_keep_the_poses(loop: Path) -> Non
         ev.ate_rmse_m,
         results[False][2].ate_rmse_m,
     )
+
+
+def test_a_revisit_follows_the_keyframe_made_at_that_place(loop: Path) -> None:
+    """Frames 0-15 of the loop, then back to 0: the way back makes no keyframes (nothing
+    new), and each frame's pose follows the keyframe of its own place (`anchor`, the
+    nearest in pose), not the last keyframe, many frames back by then."""
+    cfg = resolve_config(loop)
+    dataset = TumDataset(loop, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "isam2", T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
+    order = list(range(16)) + list(range(14, -1, -1))
+    results = []
+    for k, i in enumerate(order):
+        frame = dataset[i]
+        results.append(slam.process(frame.depth_m, k / 30.0, frame.rgb))
+    slam.finish()
+    first_visit = {i: k for k, i in reversed(list(enumerate(order)))}
+    assert all(r.keyframe and r.anchor == r.index for r in results[:16])
+    back = results[16:]
+    assert not any(r.keyframe for r in back)
+    assert [r.anchor for r in back] == [first_visit[i] for i in order[16:]]
+    poses = slam.trajectory().T_world_cam
+    for k in range(16, len(order)):  # the same image: the same final pose
+        assert_pose_close(poses[k], poses[first_visit[order[k]]], 0.01, 0.5)

@@ -58,3 +58,14 @@ def _near_any(config: BackendConfig, T_keyframes: np.ndarray, T_now: np.ndarray)
     R = T_keyframes[near, :3, :3]
     cos = (np.einsum("kij,ij->k", R, T_now[:3, :3]) - 1.0) / 2.0  # trace(R_k^T R_now)
     return bool(np.any(cos > math.cos(math.radians(config.keyframe_min_rotation_deg))))
+
+
+def nearest_keyframe(config: BackendConfig, T_keyframes: np.ndarray, T_now: np.ndarray) -> int:
+    """Row of `T_keyframes` (K, 4, 4), K >= 1, nearest to T_now (4, 4): the smallest sum of
+    the translation over `keyframe_min_translation_m` and the rotation angle over
+    `keyframe_min_rotation_deg` (so one keyframe spacing counts one in either)."""
+    metres = np.linalg.norm(T_keyframes[:, :3, 3] - T_now[:3, 3], axis=1)
+    cos = (np.einsum("kij,ij->k", T_keyframes[:, :3, :3], T_now[:3, :3]) - 1.0) / 2.0
+    degrees = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    score = metres / config.keyframe_min_translation_m + degrees / config.keyframe_min_rotation_deg
+    return int(np.argmin(score))
