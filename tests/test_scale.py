@@ -187,7 +187,10 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(
     keyframes = [b["keyframes"] for b in result.blocks]
     assert sum(keyframes) <= 26 and keyframes[-1] == 0  # the second pass adds (almost) none
     assert result.ate_rmse_m is not None and result.ate_rmse_m < 0.01
+    first, second = result.ate_per_pass_m  # 24 frames, then 23, under one alignment
+    assert np.sqrt((24 * first**2 + 23 * second**2) / 47) == pytest.approx(result.ate_rmse_m)
     assert "plane landmarks after each pass" in result.to_text()
+    assert f"(per pass {100 * first:.2f} / {100 * second:.2f})" in result.to_text()
 
 
 def confident(plane):

@@ -5,7 +5,9 @@ then forward again, so the camera keeps coming back to the places it has mapped.
 replay is a new dataset folder of list files pointing (through symlinks) at the source's
 images, with new timestamps every 1/rate seconds and the ground truth replayed at them;
 nothing is copied. The run reports per block of frames: fps, the backend's update time,
-the map's landmarks and both processes' resident memory, then the ATE of the whole run.
+the map's landmarks and both processes' resident memory, then the ATE of the whole run
+and of each pass (one alignment over the whole run: a revisit that drifts from the first
+pass shows as a larger error in its pass).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from planeslam.app.progress import progress_bar
 from planeslam.config import resolve_config
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.core.resources import rss_mb
-from planeslam.eval.trajectory_metrics import evaluate_trajectory
+from planeslam.eval.trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, format_tum_row, read_tum
 from planeslam.io.tum_text import row_error, tum_rows
@@ -121,6 +123,8 @@ class LongRunResult:
     ate_rmse_m: float | None
     frames: int
     seconds: float
+    ate_per_pass_m: list[float] = field(default_factory=list)
+    """ATE RMSE of each pass's frames under the whole run's alignment [m]."""
 
     def to_text(self) -> str:
         head = (
@@ -135,6 +139,8 @@ class LongRunResult:
                 f"{b['rss_main_mb']:.0f} / {b['rss_backend_mb']:.0f} |"
             )
         ate = "-" if self.ate_rmse_m is None else f"{100 * self.ate_rmse_m:.2f} cm"
+        if self.ate_per_pass_m:
+            ate += " (per pass " + " / ".join(f"{100 * e:.2f}" for e in self.ate_per_pass_m) + ")"
         passes = ", ".join(str(n) for n in self.planes_per_pass)
         lines += [
             "",
@@ -202,15 +208,28 @@ def run_long(
         for index, ms in zip(keyframe_of, result.update_ms, strict=False):
             blocks[index // block].update_ms.append(ms)
     estimate: Trajectory = slam.trajectory()
-    ate = evaluate_trajectory(dataset.groundtruth, estimate).ate_rmse_m
+    evaluation = evaluate_trajectory(dataset.groundtruth, estimate)
     return LongRunResult(
         name=root.name,
         blocks=[b.row() for b in blocks],
         planes_per_pass=planes_per_pass,
-        ate_rmse_m=ate,
+        ate_rmse_m=evaluation.ate_rmse_m,
         frames=summary.frames,
         seconds=time.perf_counter() - start,
+        ate_per_pass_m=_ate_per_pass(evaluation, dataset.timestamps, frames_per_pass),
     )
+
+
+def _ate_per_pass(
+    evaluation: TrajectoryEvaluation, timestamps: np.ndarray, frames_per_pass: int
+) -> list[float]:
+    """RMSE [m] of `evaluation`'s aligned errors grouped by pass: frame k (of the replay's
+    `timestamps` (N,) [s]) is in pass max(0, (k - 1) // frames_per_pass) (`pass_order`:
+    the first pass has one more frame)."""
+    k = np.searchsorted(np.asarray(timestamps), evaluation.timestamps - 1e-6)
+    passes = np.maximum(0, (k - 1) // frames_per_pass)
+    errors = np.asarray(evaluation.ate_errors_m)
+    return [float(np.sqrt(np.mean(errors[passes == p] ** 2))) for p in np.unique(passes)]
 
 
 def bench_long(

@@ -224,10 +224,10 @@ class TrackingConfig:
     little) plus `refine_floor_*`. On the TUM fr1 clips it takes out the closed form's
     per-frame jitter (up to 5 cm along directions only small patches fix): 0.26 / 0.51 cm
     against 1.99 / 1.45 (xyz / desk), ICL-NUIM 1.65 against 1.70 cm. The jump limit
-    (`fast_max_jump_*`) then judges the refined pose. Off by default: 7-Scenes at 30 Hz gets
-    5.75 cm against 3.76, and the five-pass 7-Scenes replay (`planeslam bench long`) goes
-    wrong from its second pass (122 keyframes, 2.26x the planes after five; README,
-    "Figures")."""
+    (`fast_max_jump_*`) then judges the refined pose. Off by default: 7-Scenes at 30 Hz
+    gains (3.94 against 4.06 cm), every 30th frame loses (7.51 against 3.52 cm), and the
+    five-pass 7-Scenes replay (`planeslam bench long`) goes wrong from its second pass
+    (114 keyframes, 2.0x the planes after five, 7.72 cm; README, "Figures")."""
     refine_floor_deg: float = 0.17
     """Normal noise added to every plane in the refinement: the map plane's and the
     pose's own error [deg] ..."""
