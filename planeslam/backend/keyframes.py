@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from planeslam.backend.config import BackendConfig
-from planeslam.core.geometry import as_pose, invert_pose
+from planeslam.core.geometry import as_pose
 
 
 def is_keyframe(
@@ -39,33 +37,36 @@ def is_keyframe(
 
 
 def _moved(config: BackendConfig, T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    T_rel = invert_pose(T_a) @ T_b
-    cos = np.clip((np.trace(T_rel[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    metres, degrees = _distances(T_a[None], T_b)
     return bool(
-        np.linalg.norm(T_rel[:3, 3]) >= config.keyframe_min_translation_m
-        or math.degrees(math.acos(cos)) >= config.keyframe_min_rotation_deg
+        metres[0] >= config.keyframe_min_translation_m
+        or degrees[0] >= config.keyframe_min_rotation_deg
     )
 
 
 def _near_any(config: BackendConfig, T_keyframes: np.ndarray, T_now: np.ndarray) -> bool:
     """Whether T_now is within the translation and rotation thresholds of a keyframe."""
-    near = (
-        np.linalg.norm(T_keyframes[:, :3, 3] - T_now[:3, 3], axis=1)
-        < config.keyframe_min_translation_m
+    metres, degrees = _distances(T_keyframes, T_now)
+    return bool(
+        np.any(
+            (metres < config.keyframe_min_translation_m)
+            & (degrees < config.keyframe_min_rotation_deg)
+        )
     )
-    if not near.any():
-        return False
-    R = T_keyframes[near, :3, :3]
-    cos = (np.einsum("kij,ij->k", R, T_now[:3, :3]) - 1.0) / 2.0  # trace(R_k^T R_now)
-    return bool(np.any(cos > math.cos(math.radians(config.keyframe_min_rotation_deg))))
 
 
 def nearest_keyframe(config: BackendConfig, T_keyframes: np.ndarray, T_now: np.ndarray) -> int:
     """Row of `T_keyframes` (K, 4, 4), K >= 1, nearest to T_now (4, 4): the smallest sum of
     the translation over `keyframe_min_translation_m` and the rotation angle over
     `keyframe_min_rotation_deg` (so one keyframe spacing counts one in either)."""
-    metres = np.linalg.norm(T_keyframes[:, :3, 3] - T_now[:3, 3], axis=1)
-    cos = (np.einsum("kij,ij->k", T_keyframes[:, :3, :3], T_now[:3, :3]) - 1.0) / 2.0
-    degrees = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    metres, degrees = _distances(T_keyframes, T_now)
     score = metres / config.keyframe_min_translation_m + degrees / config.keyframe_min_rotation_deg
     return int(np.argmin(score))
+
+
+def _distances(T_keyframes: np.ndarray, T_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(K,) translations [m] and (K,) rotation angles [deg] from each of `T_keyframes`
+    (K, 4, 4) to T_now (4, 4)."""
+    metres = np.linalg.norm(T_keyframes[:, :3, 3] - T_now[:3, 3], axis=1)
+    cos = (np.einsum("kij,ij->k", T_keyframes[:, :3, :3], T_now[:3, :3]) - 1.0) / 2.0
+    return metres, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))  # trace(R_k^T R_now)

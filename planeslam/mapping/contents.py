@@ -64,6 +64,17 @@ class MapContents:
             np.array([p.d for p in planes], dtype=np.float64),
         )
 
+    def culled_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Of the `culled` planes: (normals (C, 3), d (C,) [m], centroids (C, 3) [m],
+        areas (C,) [m^2]), world frame."""
+        planes = list(self.culled.values())
+        return (
+            np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3),
+            np.array([p.d for p in planes], dtype=np.float64),
+            np.array([p.centroid for p in planes], dtype=np.float64).reshape(-1, 3),
+            np.array([p.area_m2 for p in planes], dtype=np.float64),
+        )
+
     def new_plane_id(self) -> int:
         self.next_plane_id += 1
         return self.next_plane_id - 1

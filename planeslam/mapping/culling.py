@@ -47,11 +47,8 @@ def _remember(contents: MapContents, planes: list[MapPlane]) -> None:
     the same clutter again. One pass over arrays of the remembered planes."""
     cfg = contents.config
     cos_max = np.cos(np.radians(cfg.consolidate_max_angle_deg))
-    old = list(contents.culled.values())
-    normals = np.array([p.normal for p in old], dtype=np.float64).reshape(-1, 3)
-    offsets = np.array([p.d for p in old], dtype=np.float64)
-    centroids = np.array([p.centroid for p in old], dtype=np.float64).reshape(-1, 3)
-    reach = np.sqrt(np.array([p.area_m2 for p in old], dtype=np.float64))
+    normals, offsets, centroids, areas = contents.culled_arrays()
+    reach = np.sqrt(areas)
     for plane in planes:
         covered = (
             (normals @ plane.normal >= cos_max)

@@ -140,12 +140,8 @@ class Map:
     def culled_plane_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(normals (C, 3), d (C,) [m], areas (C,) [m^2]) of the planes culled as seen by one
         keyframe only (`MapConfig.cull_single_view_after`), world frame."""
-        planes = list(self._contents.culled.values())
-        return (
-            np.array([p.normal for p in planes], dtype=np.float64).reshape(-1, 3),
-            np.array([p.d for p in planes], dtype=np.float64),
-            np.array([p.area_m2 for p in planes], dtype=np.float64),
-        )
+        normals, offsets, _, areas = self._contents.culled_arrays()
+        return normals, offsets, areas
 
     def corner_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(ids (K,) int64, planes (K, 3) int64 ROW INDICES into `plane_arrays`, points (K, 3)
