@@ -63,6 +63,10 @@ class RunMetrics:
     """How each frame's pose was found (tracking path -> frames), for methods that say."""
     map_bytes_breakdown: dict[str, int] = field(default_factory=dict)
     """map_bytes by part (planes, edges, corners, objects, sparse_cloud)."""
+    final_poses: dict[str, float] = field(default_factory=dict)
+    """Frames between keyframes re-estimated against the final map at the end
+    ('reestimated'), left at their pose anchored on a keyframe ('kept'), and the 'ms' it
+    took (`tracking.final_poses`; empty when it did not run)."""
     backend: dict[str, float] = field(default_factory=dict)
     """The iSAM2 backend's own figures, when it ran: update_ms_median and update_ms_max
     (per keyframe, in its process; the 'backend' stage is what tracking waited), batch_ms
@@ -105,6 +109,7 @@ def run_metrics(
     tracking_paths: Mapping[str, int] | None = None,
     map_bytes_breakdown: Mapping[str, int] | None = None,
     backend: Mapping[str, float] | None = None,
+    final_poses: Mapping[str, float] | None = None,
     backend_peak_rss_mb: float = 0.0,
     map_counts: Mapping[str, int] | None = None,
     tracked_fraction: float | None = None,
@@ -141,6 +146,7 @@ def run_metrics(
         keyframes=int(keyframes),
         tracking_paths=dict(tracking_paths or {}),
         map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
+        final_poses=dict(final_poses or {}),
         backend=dict(backend or {}),
     )
 
@@ -163,6 +169,7 @@ def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
             "objects": len(slam.map.objects),
         },
         backend_peak_rss_mb=result.peak_rss_mb if result is not None else 0.0,
+        final_poses=slam.final_poses,
         tracked_fraction=slam.tracked_frames / slam.frames if slam.frames else None,
     )
     if summary is None:

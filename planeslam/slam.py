@@ -67,6 +67,7 @@ from planeslam.mapping.config import MapConfig
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
 from planeslam.tracking.estimator import PoseConstraints
+from planeslam.tracking.final_poses import FrameTerms, final_poses
 from planeslam.tracking.keypoints import Keypoints
 from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.segments import Segment
@@ -206,6 +207,12 @@ class SLAM:
         """(map revision, its view) of the last `map_view`."""
         self._keyframe_final: dict[int, np.ndarray] = {}
         """Keyframe pose after the last optimisation (`finish`); the online one until then."""
+        self._frame_terms: dict[int, FrameTerms] = {}
+        """Per tracked frame between keyframes: the planes and corners its pose rests on, for
+        its re-estimate against the final map (`tracking.final_poses`)."""
+        self.final_poses: dict[str, float] = {}
+        """After `finish`: frames between keyframes re-estimated against the final map
+        ('reestimated'), left at their anchored pose ('kept') and the wall-clock 'ms'."""
         self._last_keyframe: int | None = None
         self._velocity = np.eye(4)
         """Last motion T_prev_cur of tracked frames (constant-velocity prediction)."""
@@ -343,6 +350,9 @@ class SLAM:
                 )
             self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, keypoints)
         self._remember(index, timestamp, T_world_cam, keyframe, track.lost)
+        if track.terms is not None and not (keyframe or track.lost):
+            if self.config.tracking.final_poses:
+                self._frame_terms[index] = track.terms
         if joined is not None:
             self._join(index, joined)
         valid = np.count_nonzero(depth_m > 0)  # clean_depth set NaN and +-inf to 0
@@ -590,7 +600,8 @@ class SLAM:
         """End of the sequence: the backend's final optimisation (iSAM2: a batch over the
         whole graph, `backend.final_iterations`), every keyframe pose taken from its result
         and the whole map (planes, corners, then objects) rebuilt from the final
-        landmarks; the backend then stops and the SLAM takes no more frames.
+        landmarks, then the frames between keyframes re-estimated against it
+        (`tracking.final_poses`); the backend then stops and the SLAM takes no more frames.
         Returns the wall-clock ms."""
         if self._finished:
             raise PlaneSlamError("this SLAM has finished (finish or close was called)")
@@ -606,8 +617,43 @@ class SLAM:
             self.tracker.move_keyframe(index, T_world_cam)  # keypoints follow the final map
         if not self.localize:
             self.map.apply_estimates(result.planes, result.corners)
+        self._reestimate_frames()
         self.backend_result = result
         return 1e3 * (time.perf_counter() - start)
+
+    def _reestimate_frames(self) -> None:
+        """Each tracked frame between keyframes re-estimated against the final map from the
+        planes and corners it was tracked with (`tracking.final_poses`); a frame the map
+        does not fix keeps its pose anchored on its keyframe."""
+        start = time.perf_counter()
+        frames = {
+            k: (terms, self._keyframe_final[self._anchor[k]] @ self._T_anchor_cam[k])
+            for k, terms in self._frame_terms.items()
+        }
+        cfg = self.config.tracking
+        found = final_poses(
+            frames,
+            self.map_view(),
+            self.tracker.refine_settings,
+            self.tracker.thresholds,
+            cfg.sigma_point_m,
+            cfg.final_max_step_m,
+            cfg.final_max_step_deg,
+        )
+        for k, T_world_cam in found.items():
+            self._T_anchor_cam[k] = invert_pose(self._keyframe_final[self._anchor[k]]) @ T_world_cam
+        self._frame_terms = {}
+        self.final_poses = {
+            "reestimated": len(found),
+            "kept": len(frames) - len(found),
+            "ms": 1e3 * (time.perf_counter() - start),
+        }
+        logger.info(
+            "final map: %d of %d frames between keyframes re-estimated in %.0f ms",
+            len(found),
+            len(frames),
+            self.final_poses["ms"],
+        )
 
     # -------------------------------------------------------------------------- results
 

@@ -50,7 +50,6 @@ import numpy as np
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, transform_points
-from planeslam.core.plane_fit import patch_covariance
 from planeslam.core.types import LoopConstraint, TrackingPath
 from planeslam.tracking.association import (
     Association,
@@ -71,6 +70,7 @@ from planeslam.tracking.estimator import (
     estimate_pose,
     fully_constrained,
 )
+from planeslam.tracking.final_poses import FrameTerms, frame_terms
 from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.keypoints import (
     KeypointDetector,
@@ -120,6 +120,9 @@ class TrackResult:
     first frame and lost frames."""
     keypoints: Keypoints | None = field(default=None, repr=False)
     """The frame's keypoints when tracking computed them (a keyframe keeps them)."""
+    terms: FrameTerms | None = field(default=None, repr=False)
+    """The associated planes and corners with their map ids and covariances, for the
+    final re-estimate against the final map (`final_poses`); None when lost."""
 
     @property
     def lost(self) -> bool:
@@ -517,17 +520,12 @@ class Tracker:
         same planes (each weighted by its fit and patch covariance, `refine_planes`) and
         corners; the closed-form pose when the refinement leaves a direction free, or moves
         it beyond `refine_max_step_*` and away from the prediction T_pred (4, 4)."""
-        if frame.covariances is None or frame.centroids is None or frame.areas is None:
-            return solve.T  # a view built without its planes' statistics (tests)
         cfg = self.config
         assoc = solve.association
         obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
-        cov = frame.covariances[obs] + np.array(
-            [
-                patch_covariance(self.sensor, frame.normals[i], frame.centroids[i], frame.areas[i])
-                for i in obs
-            ]
-        ).reshape(-1, 3, 3)
+        cov = frame.plane_covariances(obs, self.sensor)
+        if cov is None:
+            return solve.T  # a view built without its planes' statistics (tests)
         planes = PlaneTerms(frame.normals[obs], frame.d[obs], view.normals[mp], view.d[mp], cov)
         estimate = estimate_pose(
             solve.T,
@@ -1083,6 +1081,7 @@ class Tracker:
             new_planes=int(np.count_nonzero(new)),
             constraints=found,
             keypoints=keypoints,
+            terms=frame_terms(frame, view, assoc, self.sensor),
         )
 
 

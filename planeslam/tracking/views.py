@@ -12,8 +12,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from planeslam.core.camera import CameraConfig
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.geometry import transform_points
+from planeslam.core.plane_fit import patch_covariance
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -113,6 +114,19 @@ class FrameView:
     object_sizes: tuple[tuple[float, ...], ...] = ()
     object_centres: np.ndarray = _zeros(0, 3)
     """(O, 3) mean of each object's corner points [m] (objects with corners only)."""
+
+    def plane_covariances(self, rows: np.ndarray, sensor: DepthNoiseConfig) -> np.ndarray | None:
+        """(R, 3, 3) covariance of the planes in `rows` (OrientedPlane3 local coordinates):
+        the fit's plus the sensor's depth error correlated across each patch
+        (`core.plane_fit.patch_covariance`: large near planes count most, small far patches
+        little); None for a view built without its planes' statistics (tests)."""
+        if self.covariances is None or self.centroids is None or self.areas is None:
+            return None
+        patches = [
+            patch_covariance(sensor, self.normals[i], self.centroids[i], self.areas[i])
+            for i in rows
+        ]
+        return self.covariances[rows] + np.array(patches).reshape(-1, 3, 3)
 
     @classmethod
     def of(

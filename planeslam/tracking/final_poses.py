@@ -1,0 +1,127 @@
+"""Final poses of the frames between keyframes, re-estimated against the final map.
+
+Only keyframes are in the factor graph. A frame between them keeps the pose tracking gave
+it relative to its anchor keyframe (`SLAM`), which carries the map's error at that moment
+(on a revisit, the map as it stood then) and the closed-form plane pose's jitter along
+directions that only small patches fix. Once the backend has optimised the whole graph,
+each such frame's pose is estimated again from the planes and corners it was tracked with
+(their map ids, `FrameTerms`), against the final landmarks: the robust estimate of
+`estimator.estimate_pose`, each plane weighted by its fit plus the sensor's correlated
+depth error over its patch (`FrameView.plane_covariances`) plus `refine_floor_*`, from the
+anchored pose. A frame keeps the anchored pose when fewer than three of its planes are
+still in the map, when they leave a direction free, or when the estimate moves it beyond
+`final_max_step_*` (a wrong association, not a correction).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from planeslam.core.camera import DepthNoiseConfig
+from planeslam.tracking.association import Association
+from planeslam.tracking.estimator import (
+    ConstraintThresholds,
+    EstimatorSettings,
+    PlaneTerms,
+    PointTerms,
+    Primitive,
+    estimate_pose,
+    fully_constrained,
+)
+from planeslam.tracking.hypotheses import pose_difference
+from planeslam.tracking.views import FrameView, MapView
+
+
+@dataclass(frozen=True)
+class FrameTerms:
+    """What a tracked frame's pose rests on: its associated planes and corners (camera
+    frame) and the map ids they matched. About 100 bytes per plane."""
+
+    n_cam: np.ndarray
+    """(N, 3) observed unit normals."""
+    d_cam: np.ndarray
+    """(N,) observed offsets [m]."""
+    covariance: np.ndarray
+    """(N, 3, 3) fit plus patch covariance (OrientedPlane3 local coordinates of n_cam)."""
+    plane_ids: np.ndarray
+    """(N,) map plane ids."""
+    corner_points: np.ndarray
+    """(M, 3) observed corner points [m]."""
+    corner_ids: np.ndarray
+    """(M,) map corner ids."""
+
+
+def frame_terms(
+    frame: FrameView, view: MapView, assoc: Association, sensor: DepthNoiseConfig
+) -> FrameTerms | None:
+    """The `FrameTerms` of `assoc` (frame rows against `view` rows); None for a view built
+    without its planes' statistics (tests) or without associated planes."""
+    if not assoc.planes or frame.covariances is None:
+        return None
+    obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
+    co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+    covariance = frame.plane_covariances(obs, sensor)
+    if covariance is None:
+        return None
+    return FrameTerms(
+        n_cam=frame.normals[obs],
+        d_cam=frame.d[obs],
+        covariance=covariance,
+        plane_ids=view.plane_ids[mp].astype(np.int64),
+        corner_points=frame.corner_points[co].reshape(-1, 3),
+        corner_ids=view.corner_ids[cm].astype(np.int64),
+    )
+
+
+def final_poses(
+    frames: Mapping[int, tuple[FrameTerms, np.ndarray]],
+    view: MapView,
+    settings: EstimatorSettings,
+    thresholds: ConstraintThresholds,
+    sigma_point_m: float,
+    max_step_m: float,
+    max_step_deg: float,
+) -> dict[int, np.ndarray]:
+    """{frame: re-estimated T_world_cam (4, 4)} for the `frames` ({frame: (its terms, its
+    anchored T_world_cam (4, 4))}) that the final map `view` (world frame) fixes (module
+    docstring); the others are left out. `sigma_point_m`: corner noise, split between
+    frame and map as tracking splits it."""
+    plane_row = {int(pid): k for k, pid in enumerate(view.plane_ids)}
+    corner_row = {int(cid): k for k, cid in enumerate(view.corner_ids)}
+    found: dict[int, np.ndarray] = {}
+    for index, (terms, T_init) in frames.items():
+        keep = [j for j, pid in enumerate(terms.plane_ids.tolist()) if pid in plane_row]
+        if len(keep) < 3:
+            continue
+        rows = [plane_row[int(terms.plane_ids[j])] for j in keep]
+        planes = PlaneTerms(
+            terms.n_cam[keep],
+            terms.d_cam[keep],
+            view.normals[rows],
+            view.d[rows],
+            terms.covariance[keep],
+        )
+        corners = [j for j, cid in enumerate(terms.corner_ids.tolist()) if cid in corner_row]
+        cov = np.broadcast_to(sigma_point_m**2 / 2 * np.eye(3), (len(corners), 3, 3))
+        points = PointTerms(
+            terms.corner_points[corners].reshape(-1, 3),
+            view.corner_points[[corner_row[int(terms.corner_ids[j])] for j in corners]].reshape(
+                -1, 3
+            ),
+            cov,
+            cov,
+            Primitive.CORNERS,
+        )
+        estimate = estimate_pose(T_init, planes, [points], None, settings)
+        if not fully_constrained(estimate, thresholds):
+            continue
+        meters, degrees = pose_difference(T_init, estimate.T_world_cam)
+        if meters <= max_step_m and degrees <= max_step_deg:
+            found[index] = estimate.T_world_cam
+    return found
+
+
+__all__ = ["FrameTerms", "final_poses", "frame_terms"]
