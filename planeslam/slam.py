@@ -350,8 +350,8 @@ class SLAM:
                 )
             self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, keypoints)
         self._remember(index, timestamp, T_world_cam, keyframe, track.lost)
-        if track.terms is not None and not (keyframe or track.lost):
-            if self.config.tracking.final_poses:
+        if self.config.tracking.final_poses and not (keyframe or track.lost):
+            if track.terms is not None:
                 self._frame_terms[index] = track.terms
         if joined is not None:
             self._join(index, joined)
@@ -625,6 +625,8 @@ class SLAM:
         """Each tracked frame between keyframes re-estimated against the final map from the
         planes and corners it was tracked with (`tracking.final_poses`); a frame the map
         does not fix keeps its pose anchored on its keyframe."""
+        if not self.config.tracking.final_poses:
+            return
         start = time.perf_counter()
         frames = {
             k: (terms, self._keyframe_final[self._anchor[k]] @ self._T_anchor_cam[k])

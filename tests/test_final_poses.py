@@ -78,6 +78,34 @@ def test_a_frame_keeps_its_pose_when_the_map_does_not_fix_it() -> None:
     assert _reestimate(view, terms) == {}
 
 
+def test_one_moved_map_plane_is_left_out() -> None:
+    """A map plane that moved 5 cm off where the frame saw it (the anchored pose does not
+    fit it either) is an outlier; the other four still fix the pose."""
+    normals = np.vstack([ROOM[0], [[-0.6, 0.8, 0.0]]])
+    view, terms = _scene(T_TRUE, normals, np.append(ROOM[1], 0.5))
+    moved = dataclasses.replace(view, d=view.d + np.array([0.05, 0, 0, 0, 0]))
+    found = final_poses(
+        {7: (terms, T_TRUE)}, moved, SETTINGS, ConstraintThresholds(), 0.02, 0.2, 10.0
+    )
+    assert_pose_close(found[7], T_TRUE, 1e-4, 1e-2)
+
+
+def test_an_estimate_that_leaves_out_a_plane_the_anchored_pose_fits_is_not_taken() -> None:
+    """Three planes say the frame is 3 cm off its anchored pose, the slanted fourth one
+    (which the anchored pose fits) says it is not: another solution, not a correction."""
+    T_shifted = T_TRUE.copy()
+    T_shifted[:3, 3] += [0.03, 0.0, 0.0]
+    view, terms = _scene(T_TRUE, *ROOM)
+    _, shifted = _scene(T_shifted, *ROOM)
+    three_say_shifted = dataclasses.replace(
+        terms, d_cam=np.append(shifted.d_cam[:3], terms.d_cam[3])
+    )
+    found = final_poses(
+        {7: (three_say_shifted, T_TRUE)}, view, SETTINGS, ConstraintThresholds(), 0.02, 0.2, 10.0
+    )
+    assert found == {}
+
+
 @pytest.mark.data
 def test_frames_between_keyframes_follow_the_final_map_on_a_real_clip(tmp_path: Path) -> None:
     """TUM fr1/xyz (10 frames, 2-3 keyframes): the frames between keyframes carried by
