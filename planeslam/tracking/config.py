@@ -244,8 +244,9 @@ class TrackingConfig:
     from the planes and corners it was tracked with (`tracking.final_poses`), rather than
     carrying its tracked pose rigidly by its anchor keyframe's correction. Tracking, map and
     graph are unchanged; trajectory.txt's final poses move (2026-12-02, ATE with / without:
-    7-Scenes 3.17 / 4.06 cm, every 10th frame 3.72 / 3.86, the five-pass replay 3.84 /
-    4.56, TUM fr1/xyz 0.33 / 1.99, fr1/desk 0.29 / 1.45, ICL-NUIM 1.66 / 1.70 cm)."""
+    7-Scenes 3.23 / 4.06 cm, every 10th frame 3.72 / 3.86, the five-pass replay 3.89 /
+    4.56, TUM fr1/xyz 0.33 / 1.99, fr1/desk 0.29 / 1.45, ICL-NUIM 1.66 / 1.70 cm,
+    room_boxes_loop 0.7 / 1.0 mm)."""
     final_max_step_m: float = 0.2
     """A re-estimate farther than this from the anchored pose is not taken (a wrong
     association, not a correction) [m] ..."""
