@@ -90,6 +90,15 @@ class PointTerms:
         return len(self.p_cam)
 
 
+def corner_terms(p_cam: np.ndarray, p_world: np.ndarray, sigma_m: float) -> PointTerms:
+    """Point terms of matched corners: (M, 3) observed points (camera frame) against (M, 3)
+    corner landmarks (world frame) [m], the isotropic `sigma_m` split between the two."""
+    cov = np.broadcast_to(sigma_m**2 / 2 * np.eye(3), (len(p_cam), 3, 3))
+    return PointTerms(
+        np.reshape(p_cam, (-1, 3)), np.reshape(p_world, (-1, 3)), cov, cov, Primitive.CORNERS
+    )
+
+
 @dataclass(frozen=True)
 class LineTerms:
     """Observed edge ends (camera frame) against map edge ends along the edge (world)."""

@@ -29,7 +29,7 @@ from planeslam.tracking.estimator import (
     PlaneTerms,
     PointTerms,
     PoseEstimate,
-    Primitive,
+    corner_terms,
     estimate_pose,
     fully_constrained,
 )
@@ -61,12 +61,10 @@ def frame_terms(
 ) -> FrameTerms | None:
     """The `FrameTerms` of `assoc` (frame rows against `view` rows); None for a view built
     without its planes' statistics (tests) or without associated planes."""
-    if not assoc.planes or frame.covariances is None:
-        return None
     obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
     co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
     covariance = frame.plane_covariances(obs, sensor)
-    if covariance is None:
+    if covariance is None or not len(obs):
         return None
     return FrameTerms(
         n_cam=frame.normals[obs],
@@ -106,17 +104,11 @@ def final_poses(
             view.d[rows],
             terms.covariance[keep],
         )
-        corners = [j for j, cid in enumerate(terms.corner_ids.tolist()) if cid in corner_row]
-        cov = np.broadcast_to(sigma_point_m**2 / 2 * np.eye(3), (len(corners), 3, 3))
-        points = PointTerms(
-            terms.corner_points[corners].reshape(-1, 3),
-            view.corner_points[[corner_row[int(terms.corner_ids[j])] for j in corners]].reshape(
-                -1, 3
-            ),
-            cov,
-            cov,
-            Primitive.CORNERS,
-        )
+        matched = [
+            (j, corner_row[c]) for j, c in enumerate(terms.corner_ids.tolist()) if c in corner_row
+        ]
+        seen, known = np.array(matched, dtype=np.int64).reshape(-1, 2).T
+        points = corner_terms(terms.corner_points[seen], view.corner_points[known], sigma_point_m)
         estimate = estimate_pose(T_init, planes, [points], None, settings)
         if not fully_constrained(estimate, thresholds):
             continue

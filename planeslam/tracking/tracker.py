@@ -67,6 +67,7 @@ from planeslam.tracking.estimator import (
     PoseEstimate,
     Primitive,
     constraints,
+    corner_terms,
     estimate_pose,
     fully_constrained,
 )
@@ -508,9 +509,8 @@ class Tracker:
         """Point terms of the associated corners (`sigma_point_m`, split between frame and
         map)."""
         co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
-        cov = np.broadcast_to(self.config.sigma_point_m**2 / 2 * np.eye(3), (len(co), 3, 3))
-        return PointTerms(
-            frame.corner_points[co], view.corner_points[cm], cov, cov, Primitive.CORNERS
+        return corner_terms(
+            frame.corner_points[co], view.corner_points[cm], self.config.sigma_point_m
         )
 
     def _refined(
