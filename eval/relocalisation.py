@@ -21,6 +21,7 @@ import numpy as np
 from planeslam.config import open_configured, resolve_config
 from planeslam.core.config import ConfigLayer
 from planeslam.core.errors import EvaluationError
+from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.world_map import Map
@@ -46,6 +47,11 @@ class RelocalisationAttempt:
     """Against the pose the map's own run gave the frame (its final trajectory): where the
     map says the frame is, free of the map's own error against the truth; None without."""
     map_rotation_error_deg: float | None = None
+    aligned_translation_error_m: float | None = None
+    """Against ground truth after the map is aligned to it as ATE aligns (the SE(3) that
+    takes the map run's trajectory onto the truth): the map's drift from its first frame
+    left out; None without the map run."""
+    aligned_rotation_error_deg: float | None = None
 
 
 @dataclass(frozen=True)
@@ -80,6 +86,17 @@ class RelocalisationReport:
         )
 
     @property
+    def aligned(self) -> int | None:
+        """Attempts within both tolerances of the truth with the map aligned to it (None
+        without the map run)."""
+        if any(a.found and a.aligned_translation_error_m is None for a in self.attempts):
+            return None
+        return sum(
+            self._within(a.aligned_translation_error_m, a.aligned_rotation_error_deg)
+            for a in self.attempts
+        )
+
+    @property
     def wrong(self) -> int:
         """Attempts that returned a pose outside the tolerances."""
         return sum(a.found for a in self.attempts) - self.correct
@@ -95,6 +112,7 @@ class RelocalisationReport:
             "not_found": n - self.correct - self.wrong,
             "correct_fraction": self.correct / n if n else 0.0,
             "consistent_with_map_run": self.consistent,
+            "correct_with_map_aligned": self.aligned,
             "tolerance_m": self.tolerance_m,
             "tolerance_deg": self.tolerance_deg,
             "ms_median": float(np.median(ms)) if n else 0.0,
@@ -115,6 +133,11 @@ class RelocalisationReport:
                 if self.consistent is None
                 else f"; {self.consistent} within them of the map run's own poses"
             )
+            + (
+                ""
+                if self.aligned is None
+                else f", {self.aligned} of the truth with the map aligned to it as ATE aligns"
+            )
         )
 
 
@@ -128,10 +151,17 @@ def relocalise_frames(
 ) -> RelocalisationReport:
     """Place each frame `indices` of `dataset` in `slam`'s map on its own (module
     docstring), against ground truth and, when given, the map run's own `reference`
-    trajectory. EvaluationError when the dataset has no ground truth."""
+    trajectory and the truth with the map aligned to it by the SE(3) that takes
+    `reference` onto the truth (as ATE aligns). EvaluationError when the dataset has no
+    ground truth."""
     if dataset.groundtruth is None:
         raise EvaluationError(f"{dataset.root}: relocalisation needs groundtruth.txt")
     window_s = dataset.config.max_time_difference_s
+    T_truth_map = (
+        None
+        if reference is None
+        else evaluate_trajectory(dataset.groundtruth, reference, window_s).T_gt_est
+    )
     view = slam.map_view()
     tracker = slam.tracker
     detector = tracker.keypoint_map.detector if tracker.keypoint_map is not None else None
@@ -154,13 +184,24 @@ def relocalise_frames(
             attempts.append(RelocalisationAttempt(index, False, None, None, ms))
             continue
         meters, degrees = pose_difference(T_true, solved.T)
-        map_meters = map_degrees = None
-        if reference is not None:
+        map_meters = map_degrees = aligned_meters = aligned_degrees = None
+        if reference is not None and T_truth_map is not None:
             T_map_run = reference.pose_near(frame.timestamp, 1e-6)  # the same frame's
             if T_map_run is not None:
                 map_meters, map_degrees = pose_difference(T_map_run, solved.T)
+            aligned_meters, aligned_degrees = pose_difference(T_true, T_truth_map @ solved.T)
         attempts.append(
-            RelocalisationAttempt(index, True, meters, degrees, ms, map_meters, map_degrees)
+            RelocalisationAttempt(
+                index,
+                True,
+                meters,
+                degrees,
+                ms,
+                map_meters,
+                map_degrees,
+                aligned_meters,
+                aligned_degrees,
+            )
         )
     return RelocalisationReport(attempts, tolerance_m, tolerance_deg)
 
