@@ -79,21 +79,21 @@ class RelocalisationReport:
     def consistent(self) -> int | None:
         """Attempts within both tolerances of the map run's own pose of the frame (None
         without that run)."""
-        if any(a.found and a.map_translation_error_m is None for a in self.attempts):
-            return None
-        return sum(
-            self._within(a.map_translation_error_m, a.map_rotation_error_deg) for a in self.attempts
-        )
+        return self._count_within("map_translation_error_m", "map_rotation_error_deg")
 
     @property
     def aligned(self) -> int | None:
         """Attempts within both tolerances of the truth with the map aligned to it (None
         without the map run)."""
-        if any(a.found and a.aligned_translation_error_m is None for a in self.attempts):
+        return self._count_within("aligned_translation_error_m", "aligned_rotation_error_deg")
+
+    def _count_within(self, meters_field: str, degrees_field: str) -> int | None:
+        """Attempts whose `meters_field` and `degrees_field` are within both tolerances;
+        None when a placed attempt lacks them (no map run)."""
+        if any(a.found and getattr(a, meters_field) is None for a in self.attempts):
             return None
         return sum(
-            self._within(a.aligned_translation_error_m, a.aligned_rotation_error_deg)
-            for a in self.attempts
+            self._within(getattr(a, meters_field), getattr(a, degrees_field)) for a in self.attempts
         )
 
     @property

@@ -350,9 +350,8 @@ class SLAM:
                 )
             self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, keypoints)
         self._remember(index, timestamp, T_world_cam, keyframe, track.lost)
-        if self.config.tracking.final_poses and not (keyframe or track.lost):
-            if track.terms is not None:
-                self._frame_terms[index] = track.terms
+        if track.terms is not None and not (keyframe or track.lost):
+            self._frame_terms[index] = track.terms
         if joined is not None:
             self._join(index, joined)
         valid = np.count_nonzero(depth_m > 0)  # clean_depth set NaN and +-inf to 0

@@ -123,7 +123,8 @@ class TrackResult:
     """The frame's keypoints when tracking computed them (a keyframe keeps them)."""
     terms: FrameTerms | None = field(default=None, repr=False)
     """The associated planes and corners with their map ids and covariances, for the
-    final re-estimate against the final map (`final_poses`); None when lost."""
+    final re-estimate against the final map (`final_poses`); None when lost or when
+    `tracking.final_poses` is off."""
 
     @property
     def lost(self) -> bool:
@@ -1081,7 +1082,9 @@ class Tracker:
             new_planes=int(np.count_nonzero(new)),
             constraints=found,
             keypoints=keypoints,
-            terms=frame_terms(frame, view, assoc, self.sensor),
+            terms=(
+                frame_terms(frame, view, assoc, self.sensor) if self.config.final_poses else None
+            ),
         )
 
 
