@@ -193,6 +193,48 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(
     assert f"(per pass {100 * first:.2f} / {100 * second:.2f})" in result.to_text()
 
 
+@pytest.mark.integration
+def test_bench_long_command_runs_each_seed_and_reports_their_median(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`planeslam bench long SCENE --seeds 0 1 --set ...`: one run per seed on one replay,
+    every block written with its seed, and the median and range over the seeds."""
+    from planeslam.app.cli import main
+
+    out = tmp_path / "long"
+    args = ["-q", "bench", "long", "box_room_circle", "--passes", "2", "--block", "20"]
+    args += ["--seeds", "0", "1", "--set", "backend.keyframe_max_frames=5", "--out", str(out)]
+    assert main([*args, "--set", "backend.no_such_key=1"]) == 2  # the overrides are applied
+    assert not (out / "long.md").exists()
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "(seed 0)" in printed and "(seed 1)" in printed
+    summary = printed.splitlines()[-1]
+    assert summary.startswith("over seeds 0, 1: ATE median ")
+    assert "plane landmarks last / first pass median " in summary
+    assert (out / "long.md").read_text().strip() == printed.strip()
+    rows = [json.loads(line) for line in (out / "blocks.jsonl").read_text().splitlines()]
+    assert [(r["seed"], r["frames"]) for r in rows] == [
+        (seed, frames) for seed in (0, 1) for frames in ("0-19", "20-39", "40-46")
+    ]
+
+
+def test_seeds_summary_gives_the_median_and_range_over_the_runs() -> None:
+    from planeslam.app.bench_long import LongRunResult, seeds_summary
+
+    def run(seed: int, ate_m: float, planes: list[int]) -> LongRunResult:
+        return LongRunResult("replay", [], planes, ate_m, 100, 2.0, [ate_m], seed=seed)
+
+    runs = [run(0, 0.039, [325, 406]), run(1, 0.0385, [339, 456]), run(2, 0.0394, [339, 451])]
+    text = seeds_summary(runs)
+    assert "| 1 | 3.85 | 3.85 | 339, 456 | 1.35x | 50.0 |" in text
+    assert text.splitlines()[-1] == (
+        "over seeds 0, 1, 2: ATE median 3.90 cm (3.85-3.94); "
+        "plane landmarks last / first pass median 1.33x (1.25-1.35)"
+    )
+    assert run(0, 0.03, []).plane_growth is None
+
+
 def confident(plane):
     """`plane` with the tight fit covariance of thousands of independent pixels (1 mrad,
     1 mm), which a real sensor's correlated depth error exceeds."""

@@ -16,6 +16,7 @@ import json
 import logging
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from planeslam.app.progress import progress_bar
-from planeslam.config import resolve_config
+from planeslam.config import ConfigLayer, resolve_config
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.core.resources import rss_mb
 from planeslam.eval.trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
@@ -125,13 +126,22 @@ class LongRunResult:
     seconds: float
     ate_per_pass_m: list[float] = field(default_factory=list)
     """ATE RMSE of each pass's frames under the whole run's alignment [m]."""
+    seed: int = 0
+    """`run.seed` of the run (the front end's and the keypoint RANSAC's random generator)."""
+
+    @property
+    def plane_growth(self) -> float | None:
+        """Plane landmarks after the last pass over those after the first (None without a
+        first pass's count)."""
+        counts = self.planes_per_pass
+        return counts[-1] / counts[0] if counts and counts[0] else None
 
     def to_text(self) -> str:
         head = (
             "| frames | fps | keyframes | iSAM2 update median / p95 [ms] | plane landmarks "
             "| RSS main / backend [MiB] |"
         )
-        lines = [f"**{self.name}**", "", head, "|---|---|---|---|---|---|"]
+        lines = [f"**{self.name}** (seed {self.seed})", "", head, "|---|---|---|---|---|---|"]
         for b in self.blocks:
             lines.append(
                 f"| {b['frames']} | {b['fps']:.1f} | {b['keyframes']} | "
@@ -150,6 +160,35 @@ class LongRunResult:
         return "\n".join(lines)
 
 
+def seeds_summary(results: Sequence[LongRunResult]) -> str:
+    """One line per run (seed, ATE, planes per pass, fps) and the median with the range
+    over the runs: the replay's ATE and plane count move by a few mm and tens of planes
+    with the seed, so one seed's figure is one draw."""
+    lines = [
+        "| seed | ATE [cm] | per pass [cm] | plane landmarks after each pass | last / first | fps |"
+    ]
+    lines.append("|---|---|---|---|---|---|")
+    for r in results:
+        ate = "-" if r.ate_rmse_m is None else f"{100 * r.ate_rmse_m:.2f}"
+        per_pass = " / ".join(f"{100 * e:.2f}" for e in r.ate_per_pass_m) or "-"
+        growth = "-" if r.plane_growth is None else f"{r.plane_growth:.2f}x"
+        planes = ", ".join(str(n) for n in r.planes_per_pass)
+        fps = r.frames / r.seconds if r.seconds else 0.0
+        lines.append(f"| {r.seed} | {ate} | {per_pass} | {planes} | {growth} | {fps:.1f} |")
+    figures = []
+    ates = [100 * r.ate_rmse_m for r in results if r.ate_rmse_m is not None]
+    if ates:
+        figures.append(f"ATE median {np.median(ates):.2f} cm ({min(ates):.2f}-{max(ates):.2f})")
+    growths = [r.plane_growth for r in results if r.plane_growth is not None]
+    if growths:
+        figures.append(
+            f"plane landmarks last / first pass median {np.median(growths):.2f}x "
+            f"({min(growths):.2f}-{max(growths):.2f})"
+        )
+    seeds = ", ".join(str(r.seed) for r in results)
+    return "\n".join([*lines, "", f"over seeds {seeds}: " + "; ".join(figures)])
+
+
 def run_long(
     root: Path,
     frames_per_pass: int,
@@ -157,13 +196,17 @@ def run_long(
     config: str | Path | None = None,
     progress: bool = False,
     blocks_path: Path | None = None,
+    overrides: Sequence[str | ConfigLayer] = (),
+    seed: int = 0,
 ) -> LongRunResult:
     """SLAM (the config's backend) over a replayed folder, measured block by block.
     `frames_per_pass`: the frames each turn adds (the source's frames - 1, `pass_order`);
-    the first pass has one more. With `blocks_path`, each block's row is appended there as
-    a JSON line as soon as the block ends (its iSAM2 update times, known only after the
-    final optimisation, are left out), so an interrupted run keeps its blocks."""
-    cfg = resolve_config(root, config)
+    the first pass has one more. `overrides`: 'section.key=value' strings or config layers
+    after `config`, then `run.seed` = `seed`. With `blocks_path`, each block's row (with
+    its seed) is appended there as a JSON line as soon as the block ends (its iSAM2 update
+    times, known only after the final optimisation, are left out), so an interrupted run
+    keeps its blocks."""
+    cfg = resolve_config(root, config, overrides=[*overrides, f"run.seed={seed}"])
     dataset = TumDataset(root, cfg.camera, cfg.dataset)
     if dataset.groundtruth is None:
         raise DatasetFormatError(f"{root}: no groundtruth.txt")
@@ -198,6 +241,7 @@ def run_long(
                 b.rss_backend_mb = rss_mb(pid) if pid else 0.0
                 if blocks_path is not None:
                     row = {k: v for k, v in b.row().items() if not k.startswith("update_ms")}
+                    row["seed"] = seed
                     with blocks_path.open("a", encoding="utf-8") as f:
                         f.write(json.dumps(row) + "\n")
             bar.step()
@@ -218,6 +262,7 @@ def run_long(
         frames=summary.frames,
         seconds=summary.seconds,
         ate_per_pass_m=_ate_per_pass(evaluation, dataset.timestamps, frames_per_pass),
+        seed=seed,
     )
 
 
@@ -240,11 +285,16 @@ def bench_long(
     block: int = 1000,
     config: str | Path | None = None,
     progress: bool = False,
-) -> LongRunResult:
+    overrides: Sequence[str | ConfigLayer] = (),
+    seeds: Sequence[int] = (0,),
+) -> list[LongRunResult]:
     """`source`: a TUM folder (with associations.txt and groundtruth.txt) or the name of a
     built-in synthetic scene (rendered into OUT_DIR/data once). Builds the replay of
-    `passes` passes in OUT_DIR and runs it; writes OUT_DIR/blocks.jsonl as the blocks end
-    (started afresh) and OUT_DIR/long.md at the end."""
+    `passes` passes in OUT_DIR and runs it once per seed of `seeds` (`run_long`); writes
+    OUT_DIR/blocks.jsonl as the blocks end (started afresh) and OUT_DIR/long.md (each run's
+    table, then with several seeds `seeds_summary`), rewritten after each run."""
+    if not seeds:
+        raise ConfigError("bench long: at least one seed")
     from planeslam.sim.render import SCENES, synthesize
 
     out_dir = Path(out_dir)
@@ -258,10 +308,25 @@ def bench_long(
             raise DatasetFormatError(
                 f"{source}: neither a dataset folder nor a scene ({', '.join(sorted(SCENES))})"
             )
-    frames_per_pass = len(TumDataset(folder, resolve_config(folder, config).camera))
+    camera = resolve_config(folder, config, overrides=overrides).camera  # bad keys fail here
+    frames_per_pass = len(TumDataset(folder, camera))
     replay = replay_sequence(folder, out_dir / f"{folder.name}_{passes}pass", passes)
     blocks_path = out_dir / "blocks.jsonl"
     blocks_path.unlink(missing_ok=True)
-    result = run_long(replay, frames_per_pass - 1, block, config, progress, blocks_path)
-    (out_dir / "long.md").write_text(result.to_text() + "\n", encoding="utf-8")
-    return result
+    results: list[LongRunResult] = []
+    for seed in seeds:
+        results.append(
+            run_long(
+                replay, frames_per_pass - 1, block, config, progress, blocks_path, overrides, seed
+            )
+        )
+        (out_dir / "long.md").write_text(long_text(results) + "\n", encoding="utf-8")
+    return results
+
+
+def long_text(results: Sequence[LongRunResult]) -> str:
+    """Each run's table; with more than one run, then `seeds_summary`."""
+    parts = [r.to_text() for r in results]
+    if len(results) > 1:
+        parts.append(seeds_summary(results))
+    return "\n\n".join(parts)

@@ -19,6 +19,7 @@ from planeslam.app.config_command import (
     add_config_command,
     add_config_option,
     add_config_options,
+    add_override_option,
     camera_option,
     override_layers,
 )
@@ -306,6 +307,16 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     long.add_argument("--passes", type=int, default=5, help="passes over the sequence (default 5)")
     long.add_argument("--block", type=int, default=1000, help="frames per block (default 1000)")
     add_config_option(long)
+    add_override_option(long)
+    long.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=[0],
+        metavar="SEED",
+        help="run the replay once per seed (run.seed) and print the median and range of the "
+        "ATE and the plane growth over them (default: 0)",
+    )
     long.add_argument("--out", type=Path, default=Path("out/long"), help="output folder")
     long.set_defaults(func=_cmd_bench_long)
 
@@ -329,12 +340,19 @@ def _cmd_bench_frontend(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_long(args: argparse.Namespace) -> int:
-    from planeslam.app.bench_long import bench_long
+    from planeslam.app.bench_long import bench_long, long_text
 
-    result = bench_long(
-        args.source, args.out, args.passes, args.block, args.config, progress=not args.quiet
+    results = bench_long(
+        args.source,
+        args.out,
+        args.passes,
+        args.block,
+        args.config,
+        progress=not args.quiet,
+        overrides=override_layers(args),
+        seeds=args.seeds,
     )
-    print(result.to_text())
+    print(long_text(results))
     return 0
 
 
