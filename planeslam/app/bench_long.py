@@ -131,6 +131,11 @@ class LongRunResult:
     """`run.seed` of the run (the front end's and the keypoint RANSAC's random generator)."""
 
     @property
+    def fps(self) -> float:
+        """Frames per second over the run (frames and the final batch)."""
+        return self.frames / self.seconds if self.seconds else 0.0
+
+    @property
     def plane_growth(self) -> float | None:
         """Plane landmarks after the last pass over those after the first (None without a
         first pass's count)."""
@@ -155,7 +160,7 @@ class LongRunResult:
         passes = ", ".join(str(n) for n in self.planes_per_pass)
         lines += [
             "",
-            f"{self.frames} frames in {self.seconds:.0f} s ({self.frames / self.seconds:.1f} fps); "
+            f"{self.frames} frames in {self.seconds:.0f} s ({self.fps:.1f} fps); "
             f"plane landmarks after each pass: {passes}; ATE {ate}",
         ]
         return "\n".join(lines)
@@ -174,8 +179,7 @@ def seeds_summary(results: Sequence[LongRunResult]) -> str:
         per_pass = " / ".join(f"{100 * e:.2f}" for e in r.ate_per_pass_m) or "-"
         growth = "-" if r.plane_growth is None else f"{r.plane_growth:.2f}x"
         planes = ", ".join(str(n) for n in r.planes_per_pass)
-        fps = r.frames / r.seconds if r.seconds else 0.0
-        lines.append(f"| {r.seed} | {ate} | {per_pass} | {planes} | {growth} | {fps:.1f} |")
+        lines.append(f"| {r.seed} | {ate} | {per_pass} | {planes} | {growth} | {r.fps:.1f} |")
     figures = []
     ates = [100 * r.ate_rmse_m for r in results if r.ate_rmse_m is not None]
     if ates:

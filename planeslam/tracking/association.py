@@ -52,6 +52,20 @@ class Association:
     corners: list[tuple[int, int]]
     """(obs corner index, map corner index), one-to-one, sorted by obs index."""
 
+    def plane_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P,) obs plane rows and (P,) map plane rows of `planes`, int64."""
+        return pair_rows(self.planes)
+
+    def corner_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        """(C,) obs corner rows and (C,) map corner rows of `corners`, int64."""
+        return pair_rows(self.corners)
+
+
+def pair_rows(pairs: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """The two columns of index `pairs` as (K,) int64 arrays (empty for no pairs)."""
+    first, second = np.array(pairs, dtype=np.int64).reshape(-1, 2).T
+    return first, second
+
 
 # ----------------------------------------------------------------------------- validation
 

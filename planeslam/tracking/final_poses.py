@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from planeslam.core.camera import DepthNoiseConfig
-from planeslam.tracking.association import Association
+from planeslam.tracking.association import Association, pair_rows
 from planeslam.tracking.estimator import (
     ConstraintThresholds,
     EstimatorSettings,
@@ -61,8 +61,8 @@ def frame_terms(
 ) -> FrameTerms | None:
     """The `FrameTerms` of `assoc` (frame rows against `view` rows); None for a view built
     without its planes' statistics (tests) or without associated planes."""
-    obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
-    co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+    obs, mp = assoc.plane_rows()
+    co, cm = assoc.corner_rows()
     covariance = frame.plane_covariances(obs, sensor)
     if covariance is None or not len(obs):
         return None
@@ -107,7 +107,7 @@ def final_poses(
         matched = [
             (j, corner_row[c]) for j, c in enumerate(terms.corner_ids.tolist()) if c in corner_row
         ]
-        seen, known = np.array(matched, dtype=np.int64).reshape(-1, 2).T
+        seen, known = pair_rows(matched)
         points = corner_terms(terms.corner_points[seen], view.corner_points[known], sigma_point_m)
         estimate = estimate_pose(T_init, planes, [points], None, settings)
         if not fully_constrained(estimate, thresholds):

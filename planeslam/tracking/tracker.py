@@ -412,8 +412,8 @@ class Tracker:
         self, frame: FrameView, view: MapView, assoc: Association, T_prior: np.ndarray
     ) -> RegistrationResult:
         cfg = self.config
-        obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
-        co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+        obs, mp = assoc.plane_rows()
+        co, cm = assoc.corner_rows()
         return pose_from_planes_and_points(
             frame.normals[obs],
             frame.d[obs],
@@ -477,7 +477,7 @@ class Tracker:
         nearer map end, within `line_gate_m` along the edge); None without plane or point
         terms."""
         cfg = self.config
-        obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
+        obs, mp = assoc.plane_rows()
         cov = (
             frame.covariances[obs] if frame.covariances is not None else np.zeros((len(obs), 3, 3))
         )
@@ -509,7 +509,7 @@ class Tracker:
     def _corner_terms(self, frame: FrameView, view: MapView, assoc: Association) -> PointTerms:
         """Point terms of the associated corners (`sigma_point_m`, split between frame and
         map)."""
-        co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+        co, cm = assoc.corner_rows()
         return corner_terms(
             frame.corner_points[co], view.corner_points[cm], self.config.sigma_point_m
         )
@@ -523,7 +523,7 @@ class Tracker:
         it beyond `refine_max_step_*` and away from the prediction T_pred (4, 4)."""
         cfg = self.config
         assoc = solve.association
-        obs, mp = np.array(assoc.planes, dtype=np.int64).reshape(-1, 2).T
+        obs, mp = assoc.plane_rows()
         cov = frame.plane_covariances(obs, self.sensor)
         if cov is None:
             return solve.T  # a view built without its planes' statistics (tests)
@@ -654,7 +654,7 @@ class Tracker:
         ok = (np.arccos(cos) <= np.radians(cfg.max_residual_angle_deg)) & (
             np.abs(d_world - view.d[mp]) <= cfg.max_residual_offset_m
         )
-        co, cm = np.array(assoc.corners, dtype=np.int64).reshape(-1, 2).T
+        co, cm = assoc.corner_rows()
         moved = transform_points(T, frame.corner_points[co])
         corner_ok = (
             np.linalg.norm(moved - view.corner_points[cm], axis=1) <= cfg.max_corner_distance_m
