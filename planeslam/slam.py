@@ -531,6 +531,7 @@ class SLAM:
         correction = update.T_world_cam @ invert_pose(self._keyframe_online[pending.index])
         self._set_keyframe_online(pending.index, update.T_world_cam)
         self.tracker.move_keyframe(pending.index, update.T_world_cam)
+        self.tracker.correct_previous(correction)
         self._keyframe_final[pending.index] = update.T_world_cam
         self.map.apply_estimates(
             update.planes, update.corners, pending.plane_ids, pending.corner_ids, reaggregate=False

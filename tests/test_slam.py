@@ -190,6 +190,23 @@ def test_a_given_map_merges_with_the_runs_sensor_model(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+def test_the_dense_fallbacks_register_against_the_corrected_previous_pose(loop: Path) -> None:
+    """The backend's corrections move the tracker's last frame too: after each frame, the
+    pose the RGB-D odometry and ICP fallbacks start from is the frame's own final pose,
+    not the one it had before a keyframe's update moved the map."""
+    cfg = resolve_config(loop)
+    dataset = TumDataset(loop, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "isam2", T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
+    for i in range(40):
+        frame = dataset[i]
+        tracked = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
+        assert not tracked.lost
+        previous = slam.tracker.previous_pose
+        if i > 0:  # the first frame starts the map without tracking
+            assert previous is not None
+            assert_pose_close(previous, tracked.T_world_cam, 1e-9, 1e-9)
+
+
 def test_a_revisit_sends_loop_constraints_that_keep_the_poses(loop: Path) -> None:
     """The room-with-boxes loop comes back to where it started. With loop constraints on
     (`tracking.loops`, off by default) and every loop kept however small its correction

@@ -49,7 +49,7 @@ import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import GeometryError
-from planeslam.core.geometry import invert_pose, transform_points
+from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
 from planeslam.core.types import LoopConstraint, TrackingPath
 from planeslam.tracking.association import (
     Association,
@@ -347,6 +347,17 @@ class Tracker:
         """The backend corrected keyframe `index` to T_world_cam (4, 4)."""
         if self.keypoint_map is not None:
             self.keypoint_map.move(index, T_world_cam)
+
+    @property
+    def previous_pose(self) -> np.ndarray | None:
+        """(4, 4) T_world_cam of the last tracked frame, the dense fallbacks' reference."""
+        return self._T_world_previous
+
+    def correct_previous(self, correction: np.ndarray) -> None:
+        """The backend moved the map by `correction` (4, 4), T_optimised @ T_online^-1: the
+        last tracked frame's pose, against which the dense fallbacks register, moves too."""
+        if self._T_world_previous is not None:
+            self._T_world_previous = orthonormalize_pose(correction @ self._T_world_previous)
 
     def expect_jump(self) -> None:
         """The next frame's prediction is no evidence (a loaded map, a restart): it must be
