@@ -87,6 +87,28 @@ def test_parallel_planes_at_different_offsets_are_not_swapped():
     assert associate_planes(n_map, d_map, n_mid, d_mid, T_true, 10 * DEG, 0.5) == []
 
 
+def test_a_picture_on_a_wall_does_not_take_the_walls_landmark():
+    """ICL-NUIM frame 62: the map's wall is at 1.809 m; the frame sees the wall 0.7 cm from
+    it (a large plane) and a picture hanging 3.5 cm in front of the wall (small, 1.2 deg
+    off). Weighted by size, the picture's cost is the lower, so counting pairs first it
+    takes the wall's landmark and the wall is left out; weighing what is left unpaired
+    (`weigh_unpaired`), the wall keeps it."""
+    n_map = np.array([[-1.0, 0.0, 0.0]])
+    d_map = np.array([1.809])
+    tilt = 1.2 * DEG
+    n_obs = np.array([[-1.0, 0.0, 0.0], [-np.cos(tilt), np.sin(tilt), 0.0]])
+    d_obs = np.array([1.816, 1.781])
+    weights = np.array([2.4, 0.3])
+    args = (n_map, d_map, n_obs, d_obs, np.eye(4), 10 * DEG, 0.1)
+    assert associate_planes(*args, weights=weights) == [(1, 0)]
+    assert associate_planes(*args, weights=weights, weigh_unpaired=True) == [(0, 0)]
+    # alone, each plane still pairs; without weights, the nearer one (the wall) wins
+    assert associate_planes(
+        *args[:2], n_obs[1:], d_obs[1:], *args[4:], weights=weights[1:], weigh_unpaired=True
+    ) == [(0, 0)]
+    assert associate_planes(*args, weigh_unpaired=True) == [(0, 0)]
+
+
 def test_gates_reject_wrong_matches():
     n_map = np.array([[0.0, 0.0, 1.0]])
     d_map = np.array([0.0])

@@ -201,14 +201,24 @@ def plane_association_cost(
     return cost, allowed
 
 
-def _assign(cost: np.ndarray, allowed: np.ndarray) -> list[tuple[int, int]]:
-    """One-to-one minimum-cost pairs among allowed ones (rows, cols)."""
+def _assign(
+    cost: np.ndarray, allowed: np.ndarray, miss: np.ndarray | None = None
+) -> list[tuple[int, int]]:
+    """One-to-one minimum-cost pairs among allowed ones (rows, cols). Without `miss` the
+    number of pairs comes first; with `miss` (R,), the cost of leaving each row unpaired,
+    a row is paired only where that lowers the total (an extra column per row)."""
     from scipy.optimize import linear_sum_assignment  # 0.3 s to import: not at start-up
 
     if cost.size == 0 or not allowed.any():
         return []
-    rows, cols = linear_sum_assignment(np.where(allowed, cost, _FORBIDDEN))
-    keep = allowed[rows, cols]
+    full = np.where(allowed, cost, _FORBIDDEN)
+    if miss is not None:
+        unpaired = np.full((len(cost), len(cost)), _FORBIDDEN)
+        np.fill_diagonal(unpaired, miss)
+        full = np.hstack([full, unpaired])
+    rows, cols = linear_sum_assignment(full)
+    keep = cols < cost.shape[1]
+    keep[keep] = allowed[rows[keep], cols[keep]]
     return sorted(zip(rows[keep].tolist(), cols[keep].tolist(), strict=True))
 
 
@@ -225,12 +235,18 @@ def associate_planes(
     overlap_weight: float = 1.0,
     weights: np.ndarray | None = None,
     gate: np.ndarray | None = None,
+    weigh_unpaired: bool = False,
 ) -> list[tuple[int, int]]:
     """One-to-one (obs index, map index) plane pairs under a predicted pose T_map_obs (4, 4).
 
     Shapes, frames and the cost as in `plane_association_cost`; pairs outside
     the gates are never returned. The Hungarian assignment maximises the
-    number of allowed pairs first, then minimises their total cost.
+    number of allowed pairs first, then minimises their total cost. With
+    `weights` and `weigh_unpaired`, a plane left unpaired costs its weight times
+    the largest cost the gates allow instead: two planes that both fit one map
+    plane (a wall and a picture hanging on it) leave out the one that loses
+    less, so a small plane does not take a large one's partner because its
+    weighted cost is lower (`TrackingConfig.weigh_unpaired`).
     """
     cost, allowed = plane_association_cost(
         n_map,
@@ -246,7 +262,11 @@ def associate_planes(
         weights,
         gate,
     )
-    pairs = _assign(cost, allowed)
+    miss = None
+    if weights is not None and weigh_unpaired:  # weights checked by plane_association_cost
+        largest = 2.0 + (overlap_weight * (1.0 - min_overlap) if overlap is not None else 0.0)
+        miss = largest * np.asarray(weights, dtype=np.float64)
+    pairs = _assign(cost, allowed, miss)
     logger.debug("associated %d of %d observed planes (%d map planes)", len(pairs), *cost.shape)
     return pairs
 
@@ -330,6 +350,7 @@ def associate_with_corners(
     min_overlap: float = 0.0,
     weights: np.ndarray | None = None,
     gate: np.ndarray | None = None,
+    weigh_unpaired: bool = False,
 ) -> Association:
     """Associate corners first, fix their three plane pairs together, then the other planes.
 
@@ -351,7 +372,7 @@ def associate_with_corners(
        contradicting pairs fixed before it is dropped.
     4. The remaining planes go through `associate_planes` (with the
        matching rows / columns of `overlap`, `gate` and entries of `weights`, if
-       given). `gate` (N, M) bool also restricts the corners' plane pairings.
+       given, and `weigh_unpaired`). `gate` (N, M) bool also restricts the corners' plane pairings.
     5. Corners whose three planes ended up associated are added
        (`associate_corners`).
     """
@@ -442,6 +463,7 @@ def associate_with_corners(
         min_overlap,
         weights=None if weights is None else np.asarray(weights, dtype=np.float64)[free_obs],
         gate=None if gate is None else np.asarray(gate, dtype=bool)[np.ix_(free_obs, free_map)],
+        weigh_unpaired=weigh_unpaired,
     )
     plane_pairs = sorted(
         list(fixed_obs.items()) + [(int(free_obs[i]), int(free_map[j])) for i, j in rest]

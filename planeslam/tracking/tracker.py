@@ -383,6 +383,7 @@ class Tracker:
             cfg.max_corner_distance_m,
             weights=frame.weights,
             gate=self._size_gate(frame, view.plane_weights),
+            weigh_unpaired=cfg.weigh_unpaired,
         )
 
     def _size_gate(self, frame: FrameView, areas: np.ndarray | None) -> np.ndarray | None:
