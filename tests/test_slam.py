@@ -207,6 +207,7 @@ def test_the_dense_fallbacks_register_against_the_corrected_previous_pose(loop: 
             assert_pose_close(previous, tracked.T_world_cam, 1e-9, 1e-9)
 
 
+@pytest.mark.slow
 def test_a_revisit_sends_loop_constraints_that_keep_the_poses(loop: Path) -> None:
     """The room-with-boxes loop comes back to where it started. With loop constraints on
     (`tracking.loops`, off by default) and every loop kept however small its correction

@@ -372,7 +372,8 @@ def associate_with_corners(
        contradicting pairs fixed before it is dropped.
     4. The remaining planes go through `associate_planes` (with the
        matching rows / columns of `overlap`, `gate` and entries of `weights`, if
-       given, and `weigh_unpaired`). `gate` (N, M) bool also restricts the corners' plane pairings.
+       given, and `weigh_unpaired`). `gate` (N, M) bool also restricts the
+       corners' plane pairings.
     5. Corners whose three planes ended up associated are added
        (`associate_corners`).
     """
