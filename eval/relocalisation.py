@@ -54,8 +54,8 @@ class RelocalisationAttempt:
     aligned_rotation_error_deg: float | None = None
     run_aligned_translation_error_m: float | None = None
     """The map run's own pose of the frame against the truth, aligned the same way: the
-    map's own error here, which the aligned figures cannot beat; None without the map run
-    or a pose."""
+    map's own error here, which the aligned figures inherit; None without the map run or
+    a pose."""
     run_aligned_rotation_error_deg: float | None = None
 
 
@@ -95,7 +95,8 @@ class RelocalisationReport:
     @property
     def run_aligned(self) -> int | None:
         """Frames whose map-run pose is within both tolerances of the truth, aligned (None
-        without the map run): the ceiling of `aligned`."""
+        without the map run): how far the map itself lets `aligned` go (the frames need
+        not be the same ones)."""
         return self._count_within(
             "run_aligned_translation_error_m", "run_aligned_rotation_error_deg"
         )

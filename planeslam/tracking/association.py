@@ -264,6 +264,7 @@ def associate_planes(
     )
     miss = None
     if weights is not None and weigh_unpaired:  # weights checked by plane_association_cost
+        # inside the gates the angle and offset terms are each at most 1 (cost docstring)
         largest = 2.0 + (overlap_weight * (1.0 - min_overlap) if overlap is not None else 0.0)
         miss = largest * np.asarray(weights, dtype=np.float64)
     pairs = _assign(cost, allowed, miss)
