@@ -17,7 +17,7 @@ from planeslam.backend.config import BackendConfig
 from planeslam.backend.keyframes import is_keyframe, nearest_keyframe
 from planeslam.core.geometry import convex_polygon_gap, pose_from_quat
 from planeslam.io.dataset import TumDataset
-from planeslam.io.trajectory import read_tum
+from planeslam.io.trajectory import Trajectory, read_tum
 from planeslam.mapping.config import MapConfig
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
@@ -191,6 +191,9 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(
     assert np.sqrt((24 * first**2 + 23 * second**2) / 47) == pytest.approx(result.ate_rmse_m)
     assert "plane landmarks after each pass" in result.to_text()
     assert f"(per pass {100 * first:.2f} / {100 * second:.2f})" in result.to_text()
+    [(metres, degrees)] = result.revisit_offsets  # the second pass places each image again
+    assert metres < 0.005 and degrees < 0.5
+    assert "the same image's pose against its first-pass pose" in result.to_text()
 
 
 @pytest.mark.integration
@@ -226,13 +229,46 @@ def test_seeds_summary_gives_the_median_and_range_over_the_runs() -> None:
         return LongRunResult("replay", [], planes, ate_m, 100, 2.0, [ate_m], seed=seed)
 
     runs = [run(0, 0.039, [325, 406]), run(1, 0.0385, [339, 456]), run(2, 0.0394, [339, 451])]
+    runs[1] = dataclasses.replace(runs[1], revisit_offsets=[(0.0173, 0.79), (0.0197, 0.79)])
     text = seeds_summary(runs)
-    assert "| 1 | 3.85 | 3.85 | 339, 456 | 1.35x | 50.0 |" in text
+    assert "| 1 | 3.85 | 3.85 | 339, 456 | 1.35x | 1.73 / 1.97 | 50.0 |" in text
+    assert "| 0 | 3.90 | 3.90 | 325, 406 | 1.25x | - | 50.0 |" in text
     assert text.splitlines()[-1] == (
         "over seeds 0, 1, 2: ATE median 3.90 cm (3.85-3.94); "
         "plane landmarks last / first pass median 1.33x (1.25-1.35)"
     )
     assert run(0, 0.03, []).plane_growth is None
+
+
+def test_revisit_offsets_compare_each_image_with_its_first_pass_pose() -> None:
+    """Three passes over 4 images; the second pass's poses are 1 cm and 2 deg off the first
+    pass's, the third pass's 3 cm and 0 deg; a lost frame is left out."""
+    from scipy.spatial.transform import Rotation
+
+    from planeslam.app.bench_long import revisit_offsets
+
+    order = pass_order(4, 3)  # 0 1 2 3 2 1 0 1 2 3
+    first = [np.eye(4) for _ in range(4)]
+    for k, T in enumerate(first):
+        T[:3, 3] = [0.1 * k, 0.0, 1.0]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.radians(2.0)]).as_matrix()
+    poses = []
+    for k, source in enumerate(order):
+        T = first[source].copy()
+        if 4 <= k <= 6:
+            T = T @ turn
+            T[:3, 3] += [0.01, 0.0, 0.0]
+        elif k >= 7:
+            T[:3, 3] += [0.0, 0.03, 0.0]
+        poses.append(T)
+    timestamps = np.arange(len(order)) / 30.0
+    kept = [k for k in range(len(order)) if k != 8]  # frame 8 lost
+    estimate = Trajectory(timestamps[kept], np.array(poses)[kept])
+    (m2, deg2), (m3, deg3) = revisit_offsets(estimate, timestamps, frames_per_pass=3)
+    assert m2 == pytest.approx(0.01) and deg2 == pytest.approx(2.0)
+    assert m3 == pytest.approx(0.03) and deg3 == pytest.approx(0.0, abs=1e-6)
+    assert revisit_offsets(estimate, timestamps[:4], frames_per_pass=3) == []  # one pass
 
 
 def confident(plane):
