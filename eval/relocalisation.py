@@ -156,7 +156,7 @@ class RelocalisationReport:
             + (
                 ""
                 if self.run_aligned is None
-                else f" (the map run's own poses: {self.run_aligned}, its error bounds that figure)"
+                else f" (the map run's own poses of those frames: {self.run_aligned})"
             )
         )
 

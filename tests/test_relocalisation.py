@@ -36,7 +36,7 @@ def test_report_counts_against_truth_and_the_map_run() -> None:
     assert "1 of 4 frames relocalised within 5 cm and 3 deg (25.0 %)" in report.to_text()
     assert "2 within them of the map run's own poses" in report.to_text()
     assert "2 of the truth with the map aligned to it" in report.to_text()
-    assert "(the map run's own poses: 2, its error bounds that figure)" in report.to_text()
+    assert "(the map run's own poses of those frames: 2)" in report.to_text()
     without_run = RelocalisationReport([RelocalisationAttempt(0, True, 0.01, 0.5, 1.0)])
     assert without_run.consistent is None and "map run" not in without_run.to_text()
     assert without_run.aligned is None and "aligned" not in without_run.to_text()
