@@ -327,6 +327,7 @@ class SLAM:
         T_pred = self.predicted_pose()
         if index == 0 and not self._in_given_map:
             track = TrackResult(self._T_world_first, TrackingPath.FIRST, "first frame")
+            self.tracker.start(observation, self._T_world_first, rgb, depth_m)
         else:
             track = self.tracker.track(
                 observation, self.map_view(), T_pred, rgb, depth_m, self._last_tracked
@@ -412,11 +413,13 @@ class SLAM:
                 index,
                 observation,
                 rgb,
+                depth_m,
                 tracking,
                 self.config.camera,
                 self.config.sensor,
                 seed,
                 track,
+                self.tracker.odometry,
             )
             note = "a new segment starts here"
         else:

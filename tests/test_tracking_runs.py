@@ -23,6 +23,7 @@ from planeslam.mapping.world_map import Map
 from planeslam.sim.render import render_frame, synthesize
 from planeslam.sim.scenes import SceneOptions, room_boxes_loop
 from planeslam.slam import SLAM, run_frames
+from planeslam.tracking.segments import Segment
 
 
 def pose_errors(estimated: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -169,3 +170,31 @@ def test_7scenes_every_20th_frame(tmp_path: Path) -> None:
     assert result.evaluation is not None
     assert result.evaluation.evaluation.ate_rmse_m <= 0.05
     assert result.evaluation.evaluation.pairs == 50
+
+
+@pytest.mark.data
+def test_the_first_frame_is_the_dense_fallbacks_previous_frame() -> None:
+    """ICL-NUIM with planes only up to 3 m: a frame holds the floor and one wall, so the
+    plane pose cannot fix the translation and the second frame needs RGB-D odometry against
+    the first. The first frame (of the run, and of a segment) is not tracked, and it used
+    not to be kept as the previous frame: all 100 later frames were lost, each starting a
+    segment whose next frame failed the same way. Measured: the 11 frames all tracked."""
+    folder = shared_sequence("iclnuim_of_kt0")
+    cfg = resolve_config(folder, overrides=["segmentation.max_depth_m=3.0"])
+    dataset = TumDataset(folder, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "merge")
+    results = [
+        slam.process(dataset[k].depth_m, dataset.timestamps[k], dataset[k].rgb) for k in range(11)
+    ]
+    slam.finish()
+    assert np.allclose(results[0].T_world_cam, np.eye(4))
+    assert not any(r.lost for r in results), [r.reason for r in results]
+    assert "odometry" in results[1].path  # the plane pose alone could not do it
+    assert slam.tracked_frames == 11
+    first, second = results[0].observation, results[1].observation
+    rgb, depth = dataset[0].rgb, dataset[0].depth_m
+    odometry = slam.tracker.odometry
+    segment = Segment(0, first, rgb, depth, cfg.tracking, cfg.camera, cfg.sensor, 0, None, odometry)
+    T_seg_cam = segment.track(1, second, dataset[1].rgb, dataset[1].depth_m)
+    assert T_seg_cam is not None  # a segment's second frame: the same fallback
+    assert np.linalg.norm(T_seg_cam[:3, 3] - results[1].T_world_cam[:3, 3]) < 0.01

@@ -39,17 +39,21 @@ class Segment:
         index: int,
         observation: FrameObservation,
         rgb: np.ndarray | None,
+        depth_m: np.ndarray | None,
         config: TrackingConfig,
         camera: CameraConfig | None,
         sensor: DepthNoiseConfig | None,
         seed: int = 0,
         result: TrackResult | None = None,
+        odometry=None,
     ) -> None:
-        """Start at frame `index` (its observation and colour); `result` the map tracker's
-        (lost) result for it, whose keypoints are reused."""
+        """Start at frame `index` (its observation, colour and (H, W) depth [m]); `result`
+        the map tracker's (lost) result for it, whose keypoints are reused; `odometry` the
+        map tracker's `odometry.RgbdOdometry` (stateless), so planes that fix only some
+        directions are completed as in the map."""
         self.config = config
         self.first = index
-        self.tracker = Tracker(config, None, camera, sensor, seed, empty_map_starts=False)
+        self.tracker = Tracker(config, odometry, camera, sensor, seed, empty_map_starts=False)
         self.poses: dict[int, np.ndarray] = {index: np.eye(4)}
         """Frame index -> T_seg_cam (4, 4) of every frame the segment tracked."""
         self._view = frame_as_map(FrameView.of(observation, camera), np.eye(4))
@@ -58,6 +62,7 @@ class Segment:
         self._last_keyframe = np.eye(4)
         keypoints = result.keypoints if result is not None else None
         self.tracker.add_keyframe(index, np.eye(4), rgb, observation.cloud, keypoints)
+        self.tracker.start(observation, np.eye(4), rgb, depth_m)
 
     def track(
         self,

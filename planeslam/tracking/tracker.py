@@ -853,12 +853,8 @@ class Tracker:
         T_pred (4, 4) T_world_cam; colour enables keypoints, colour and depth the RGB-D
         odometry fallback; T_last (4, 4), the last tracked frame's pose as the prediction
         was made from it, also bounds the jump limit (`_near`)."""
-        cfg = self.config
         frame = FrameView.of(observation, self.camera)
-        cloud = observation.cloud if cfg.icp else None
-        rgbd = None
-        if cfg.rgbd_odometry and self.odometry is not None and rgb is not None:
-            rgbd = (rgb, depth_m) if depth_m is not None else None
+        cloud, rgbd = self._dense_inputs(observation, rgb, depth_m)
         points = _NO_POINTS
         if self.keypoint_map is not None and rgb is not None and observation.cloud is not None:
             detector, image, xyz = self.keypoint_map.detector, rgb, observation.cloud
@@ -867,10 +863,45 @@ class Tracker:
         result = self._track(frame, view, T_pred, cloud, rgbd, points, gap, T_last)
         self.prediction_valid = not result.lost
         if not result.lost:
-            self._previous_cloud, self._previous_rgbd = cloud, rgbd
-            self._T_world_previous = result.T_world_cam
-            self._previous_stamp = observation.timestamp
+            self._remember_previous(observation.timestamp, cloud, rgbd, result.T_world_cam)
         return result
+
+    def start(
+        self,
+        observation: FrameObservation,
+        T_world_cam: np.ndarray,
+        rgb: np.ndarray | None = None,
+        depth_m: np.ndarray | None = None,
+    ) -> None:
+        """A frame placed without tracking (the first of a run or of a segment) at
+        T_world_cam (4, 4): the next frame's prediction and dense fallbacks (RGB-D
+        odometry, ICP) start from it, as from a tracked frame."""
+        cloud, rgbd = self._dense_inputs(observation, rgb, depth_m)
+        self.prediction_valid = True
+        self._remember_previous(observation.timestamp, cloud, rgbd, T_world_cam)
+
+    def _dense_inputs(
+        self, observation: FrameObservation, rgb: np.ndarray | None, depth_m: np.ndarray | None
+    ) -> tuple[np.ndarray | None, tuple[np.ndarray, np.ndarray] | None]:
+        """The frame's organised cloud when ICP may run and its (rgb, depth_m) pair when
+        RGB-D odometry may (None where the config or the inputs rule them out)."""
+        cfg = self.config
+        cloud = observation.cloud if cfg.icp else None
+        rgbd = None
+        if cfg.rgbd_odometry and self.odometry is not None and rgb is not None:
+            rgbd = (rgb, depth_m) if depth_m is not None else None
+        return cloud, rgbd
+
+    def _remember_previous(
+        self,
+        timestamp: float,
+        cloud: np.ndarray | None,
+        rgbd: tuple[np.ndarray, np.ndarray] | None,
+        T_world_cam: np.ndarray,
+    ) -> None:
+        self._previous_cloud, self._previous_rgbd = cloud, rgbd
+        self._T_world_previous = np.asarray(T_world_cam, dtype=np.float64)
+        self._previous_stamp = timestamp
 
     def _track(
         self,
