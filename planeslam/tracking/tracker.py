@@ -860,7 +860,10 @@ class Tracker:
             detector, image, xyz = self.keypoint_map.detector, rgb, observation.cloud
             points = _LazyKeypoints(lambda: detector.detect(image, xyz))
         gap = observation.timestamp - self._previous_stamp
-        result = self._track(frame, view, T_pred, cloud, rgbd, points, gap, T_last)
+        dense_cloud, dense_rgbd = cloud, rgbd
+        if cloud is not None and parallel_share(observation) >= self.config.icp_min_fitness:
+            dense_cloud = dense_rgbd = None  # the overlap check could not reject a slide
+        result = self._track(frame, view, T_pred, dense_cloud, dense_rgbd, points, gap, T_last)
         self.prediction_valid = not result.lost
         if not result.lost:
             self._remember_previous(observation.timestamp, cloud, rgbd, result.T_world_cam)
@@ -1129,6 +1132,26 @@ class Tracker:
                 frame_terms(frame, view, assoc, self.sensor) if self.config.final_poses else None
             ),
         )
+
+
+def parallel_share(observation: FrameObservation, max_angle_deg: float = 10.0) -> float:
+    """Share of the frame's valid depth pixels on its planes when they are all parallel
+    (within max_angle_deg, either side), else 0. When it reaches `icp_min_fitness`, a pose
+    slid along those planes or turned about their normal still lands that share of the
+    frame on the previous frame's depth, and the planes fix neither, so the dense
+    fallbacks' overlap check (`_agrees`) could not reject it: the frame then gets no dense
+    pose (it is lost rather than misplaced)."""
+    planes = observation.segmentation.planes
+    cloud = observation.cloud
+    if not planes or cloud is None:
+        return 0.0
+    normals = np.array([p.normal for p in planes], dtype=np.float64)
+    if np.min(np.abs(normals @ normals[0])) < np.cos(np.radians(max_angle_deg)):
+        return 0.0  # two directions of planes: they fix the rotation
+    valid = np.isfinite(cloud[..., 2]) & (cloud[..., 2] > 0)
+    total = int(np.count_nonzero(valid))
+    on_planes = (observation.segmentation.labels >= 0) & valid
+    return float(np.count_nonzero(on_planes)) / total if total else 0.0
 
 
 def _with_point_inliers(solve: JointSolve, agreeing: np.ndarray) -> tuple[JointSolve, np.ndarray]:
