@@ -860,10 +860,8 @@ class Tracker:
             detector, image, xyz = self.keypoint_map.detector, rgb, observation.cloud
             points = _LazyKeypoints(lambda: detector.detect(image, xyz))
         gap = observation.timestamp - self._previous_stamp
-        dense_cloud, dense_rgbd = cloud, rgbd
-        if cloud is not None and parallel_share(observation) >= self.config.icp_min_fitness:
-            dense_cloud = dense_rgbd = None  # the overlap check could not reject a slide
-        result = self._track(frame, view, T_pred, dense_cloud, dense_rgbd, points, gap, T_last)
+        slides = cloud is not None and parallel_share(observation) >= self.config.icp_min_fitness
+        result = self._track(frame, view, T_pred, cloud, rgbd, points, gap, T_last, slides)
         self.prediction_valid = not result.lost
         if not result.lost:
             self._remember_previous(observation.timestamp, cloud, rgbd, result.T_world_cam)
@@ -916,9 +914,11 @@ class Tracker:
         points: _LazyKeypoints = _NO_POINTS,
         frame_gap_s: float = np.inf,
         T_last: np.ndarray | None = None,
+        slides: bool = False,
     ) -> TrackResult:
         """The steps of the module docstring, in order, on prepared inputs; `frame_gap_s`
-        the time since the last tracked frame [s], T_last (4, 4) its pose."""
+        the time since the last tracked frame [s], T_last (4, 4) its pose; `slides`: the
+        frame's depth is mostly one family of parallel planes (`parallel_share`)."""
         cfg = self.config
         if view.empty and self.keypoint_map is None and self.empty_map_starts:
             return TrackResult(T_pred, TrackingPath.FIRST, "empty map: the frame starts it")
@@ -999,7 +999,9 @@ class Tracker:
         if jumped:
             reasons.append("the frame's keypoints contradict the recent keyframes (a jump?)")
         elif self.prediction_valid:
-            dense = self._dense(frame, view, T_pred, trusted, cloud, rgbd, reasons, keypoints)
+            dense = self._dense(
+                frame, view, T_pred, trusted, cloud, rgbd, reasons, keypoints, slides
+            )
             if dense is not None:
                 return dense
         reasons.append("no fallback registered the frame")
@@ -1019,11 +1021,14 @@ class Tracker:
         rgbd,
         reasons: list[str],
         keypoints: Keypoints | None,
+        slides: bool = False,
     ) -> TrackResult | None:
         """Last resort, right after a tracked frame only (across a loss the prediction is
         stale): RGB-D odometry, then ICP, against the previous frame from the trusted plane
         pose `planes` or the prediction, taken when the result overlaps the previous frame's
-        depth. A plane pose that fixed rotation keeps it and its translation directions."""
+        depth. A plane pose that fixed rotation keeps it and its translation directions.
+        When the frame `slides` (its depth mostly on parallel planes, which any slide along
+        them still overlaps), the frame's keypoints must agree with the result too."""
         methods: list[tuple[TrackingPath, Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(TrackingPath.ODOMETRY, Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
@@ -1034,6 +1039,12 @@ class Tracker:
                 continue
             if not self._agrees(cloud, T):
                 reasons.append(f"{path.value} result does not overlap the previous frame")
+                continue
+            if slides and not self._keypoints_agree(T, keypoints):
+                reasons.append(
+                    f"{path.value} result unconfirmed: the frame's depth is parallel planes "
+                    "and its keypoints do not agree"
+                )
                 continue
             dof = (0, 0)
             reg = None if planes is None else planes.registration
@@ -1055,7 +1066,10 @@ class Tracker:
         last keyframe's agree with T (4, 4): the cheap check of a plane pose that moved the
         prediction more than the fast path allows (online poses jitter by several cm even
         at 30 Hz; a wrong plane fit at a wide baseline does not agree with the points)."""
-        keypoints = points.get()
+        return self._keypoints_agree(T, points.get())
+
+    def _keypoints_agree(self, T: np.ndarray, keypoints: Keypoints | None) -> bool:
+        """`_points_agree` on keypoints already detected (None: no keypoints, False)."""
         if keypoints is None or self.keypoint_map is None or not len(keypoints):
             return False
         matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
@@ -1139,8 +1153,8 @@ def parallel_share(observation: FrameObservation, max_angle_deg: float = 10.0) -
     (within max_angle_deg, either side), else 0. When it reaches `icp_min_fitness`, a pose
     slid along those planes or turned about their normal still lands that share of the
     frame on the previous frame's depth, and the planes fix neither, so the dense
-    fallbacks' overlap check (`_agrees`) could not reject it: the frame then gets no dense
-    pose (it is lost rather than misplaced)."""
+    fallbacks' overlap check (`_agrees`) could not reject it: a dense pose of such a frame
+    must also agree with its keypoints."""
     planes = observation.segmentation.planes
     cloud = observation.cloud
     if not planes or cloud is None:
