@@ -27,6 +27,7 @@ import numpy as np
 from planeslam.app.progress import progress_bar
 from planeslam.config import ConfigLayer, resolve_config
 from planeslam.core.errors import ConfigError, DatasetFormatError
+from planeslam.core.geometry import pose_distances
 from planeslam.core.resources import rss_mb
 from planeslam.eval.trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
 from planeslam.io.dataset import TumDataset
@@ -316,22 +317,18 @@ def revisit_offsets(
     known = k < len(timestamps)
     k, poses = k[known], estimate.T_world_cam[known]
     pass_of = np.maximum(0, (k - 1) // frames_per_pass)
-    first = {int(source[i]): T for i, T, p in zip(k, poses, pass_of, strict=True) if p == 0}
+    first_row = np.full(frames_per_pass + 1, -1)  # source image -> its first-pass row
+    in_first = np.flatnonzero(pass_of == 0)
+    first_row[source[k[in_first]]] = in_first
+    partner = first_row[source[k]]
+    metres, degrees = pose_distances(poses, poses[partner])  # rows without one: dropped
     offsets = []
     for p in range(1, passes):
-        pairs = [
-            (first[int(source[i])], T)
-            for i, T, q in zip(k, poses, pass_of, strict=True)
-            if q == p and int(source[i]) in first
-        ]
-        if not pairs:
+        rows = (pass_of == p) & (partner >= 0)
+        if not rows.any():
             offsets.append((float("nan"), float("nan")))
             continue
-        A, B = np.array([a for a, _ in pairs]), np.array([b for _, b in pairs])
-        metres = np.linalg.norm(A[:, :3, 3] - B[:, :3, 3], axis=1)
-        cos = (np.einsum("kij,kij->k", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0
-        degrees = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-        offsets.append((float(np.median(metres)), float(np.median(degrees))))
+        offsets.append((float(np.median(metres[rows])), float(np.median(degrees[rows]))))
     return offsets
 
 

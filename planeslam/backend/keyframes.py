@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from planeslam.backend.config import BackendConfig
-from planeslam.core.geometry import as_pose
+from planeslam.core.geometry import as_pose, pose_distances
 
 
 def is_keyframe(
@@ -37,16 +37,15 @@ def is_keyframe(
 
 
 def _moved(config: BackendConfig, T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    metres, degrees = _distances(T_a[None], T_b)
+    metres, degrees = pose_distances(T_a, T_b)
     return bool(
-        metres[0] >= config.keyframe_min_translation_m
-        or degrees[0] >= config.keyframe_min_rotation_deg
+        metres >= config.keyframe_min_translation_m or degrees >= config.keyframe_min_rotation_deg
     )
 
 
 def _near_any(config: BackendConfig, T_keyframes: np.ndarray, T_now: np.ndarray) -> bool:
     """Whether T_now is within the translation and rotation thresholds of a keyframe."""
-    metres, degrees = _distances(T_keyframes, T_now)
+    metres, degrees = pose_distances(T_keyframes, T_now)
     return bool(
         np.any(
             (metres < config.keyframe_min_translation_m)
@@ -59,14 +58,6 @@ def nearest_keyframe(config: BackendConfig, T_keyframes: np.ndarray, T_now: np.n
     """Row of `T_keyframes` (K, 4, 4), K >= 1, nearest to T_now (4, 4): the smallest sum of
     the translation over `keyframe_min_translation_m` and the rotation angle over
     `keyframe_min_rotation_deg` (so one keyframe spacing counts one in either)."""
-    metres, degrees = _distances(T_keyframes, T_now)
+    metres, degrees = pose_distances(T_keyframes, T_now)
     score = metres / config.keyframe_min_translation_m + degrees / config.keyframe_min_rotation_deg
     return int(np.argmin(score))
-
-
-def _distances(T_keyframes: np.ndarray, T_now: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(K,) translations [m] and (K,) rotation angles [deg] from each of `T_keyframes`
-    (K, 4, 4) to T_now (4, 4)."""
-    metres = np.linalg.norm(T_keyframes[:, :3, 3] - T_now[:3, 3], axis=1)
-    cos = (np.einsum("kij,ij->k", T_keyframes[:, :3, :3], T_now[:3, :3]) - 1.0) / 2.0
-    return metres, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))  # trace(R_k^T R_now)

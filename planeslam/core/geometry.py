@@ -106,6 +106,14 @@ def rotation_angle(R: np.ndarray) -> float:
     return math.atan2(sin, 0.5 * (float(np.trace(R)) - 1.0))
 
 
+def pose_distances(T_a: np.ndarray, T_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Translations [m] and rotation angles [deg] between poses T_a (..., 4, 4) and T_b
+    (..., 4, 4), broadcast (one T_b against K poses T_a, or K pairs): shape (...)."""
+    metres = np.linalg.norm(T_a[..., :3, 3] - T_b[..., :3, 3], axis=-1)
+    cos = (np.einsum("...ij,...ij->...", T_a[..., :3, :3], T_b[..., :3, :3]) - 1.0) / 2.0
+    return metres, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))  # trace(R_a^T R_b)
+
+
 def angle_between(a: np.ndarray, b: np.ndarray) -> float:
     """Angle [rad] between two vectors, robust near 0 and pi."""
     a = a / np.linalg.norm(a)
