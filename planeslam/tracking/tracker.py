@@ -860,7 +860,10 @@ class Tracker:
             detector, image, xyz = self.keypoint_map.detector, rgb, observation.cloud
             points = _LazyKeypoints(lambda: detector.detect(image, xyz))
         gap = observation.timestamp - self._previous_stamp
-        slides = cloud is not None and parallel_share(observation) >= self.config.icp_min_fitness
+
+        def slides() -> bool:  # asked only of a dense pose, so no frame pays for it otherwise
+            return cloud is not None and parallel_share(observation) >= self.config.icp_min_fitness
+
         result = self._track(frame, view, T_pred, cloud, rgbd, points, gap, T_last, slides)
         self.prediction_valid = not result.lost
         if not result.lost:
@@ -914,11 +917,11 @@ class Tracker:
         points: _LazyKeypoints = _NO_POINTS,
         frame_gap_s: float = np.inf,
         T_last: np.ndarray | None = None,
-        slides: bool = False,
+        slides: Callable[[], bool] = lambda: False,
     ) -> TrackResult:
         """The steps of the module docstring, in order, on prepared inputs; `frame_gap_s`
-        the time since the last tracked frame [s], T_last (4, 4) its pose; `slides`: the
-        frame's depth is mostly one family of parallel planes (`parallel_share`)."""
+        the time since the last tracked frame [s], T_last (4, 4) its pose; `slides()`: whether
+        the frame's depth is mostly one family of parallel planes (`parallel_share`)."""
         cfg = self.config
         if view.empty and self.keypoint_map is None and self.empty_map_starts:
             return TrackResult(T_pred, TrackingPath.FIRST, "empty map: the frame starts it")
@@ -1021,13 +1024,13 @@ class Tracker:
         rgbd,
         reasons: list[str],
         keypoints: Keypoints | None,
-        slides: bool = False,
+        slides: Callable[[], bool] = lambda: False,
     ) -> TrackResult | None:
         """Last resort, right after a tracked frame only (across a loss the prediction is
         stale): RGB-D odometry, then ICP, against the previous frame from the trusted plane
         pose `planes` or the prediction, taken when the result overlaps the previous frame's
         depth. A plane pose that fixed rotation keeps it and its translation directions.
-        When the frame `slides` (its depth mostly on parallel planes, which any slide along
+        When the frame `slides()` (its depth mostly on parallel planes, which any slide along
         them still overlaps), the frame's keypoints must agree with the result too."""
         methods: list[tuple[TrackingPath, Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(TrackingPath.ODOMETRY, Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
@@ -1040,7 +1043,7 @@ class Tracker:
             if not self._agrees(cloud, T):
                 reasons.append(f"{path.value} result does not overlap the previous frame")
                 continue
-            if slides and not self._keypoints_agree(T, keypoints):
+            if slides() and not self._keypoints_agree(T, keypoints):
                 reasons.append(
                     f"{path.value} result unconfirmed: the frame's depth is parallel planes "
                     "and its keypoints do not agree"
