@@ -58,7 +58,7 @@ from planeslam.core.errors import ConfigError, DatasetFormatError, FrameReadErro
 from planeslam.core.frame_checks import check_depth_units, check_rgb, clean_depth
 from planeslam.core.geometry import as_pose, invert_pose, orthonormalize_pose, transform_points
 from planeslam.core.native_tuning import single_native_threads
-from planeslam.core.types import TrackingPath
+from planeslam.core.types import LoopConstraint, TrackingPath
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
 from planeslam.io.dataset import Frame
 from planeslam.io.sequence import RgbdDataset
@@ -69,6 +69,7 @@ from planeslam.mapping.world_map import Map
 from planeslam.tracking.estimator import PoseConstraints
 from planeslam.tracking.final_poses import FrameTerms, final_poses
 from planeslam.tracking.keypoints import Keypoints
+from planeslam.tracking.loops import LoopSearch
 from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.segments import Segment
 from planeslam.tracking.tracker import MapView, Tracker, TrackResult
@@ -225,8 +226,12 @@ class SLAM:
         self._joined_planes: list[tuple[int, int]] = []
         """(absorbed, surviving) map plane ids joined since the last keyframe went to the
         backend, which ties them in the graph with the next one."""
-        self._loops = self.backend.takes_loops and config.tracking.loops.enabled
-        """Whether keyframes look for loop constraints (`Tracker.find_loop`)."""
+        self._loop_search: LoopSearch | None = None
+        """Each keyframe's loop search, beside tracking (`Tracker.search_loop`), when loops
+        are on and the backend takes them."""
+        if self.backend.takes_loops and config.tracking.loops.enabled:
+            self._loop_search = LoopSearch(self.tracker.search_loop)
+            weakref.finalize(self, self._loop_search.close)  # dropped without close
         self.loops: list[tuple[int, int]] = []
         """(keyframe, older keyframe) frame indices of every loop constraint sent to the
         backend."""
@@ -254,6 +259,8 @@ class SLAM:
         """Stop the backend without optimising (an interrupted run); idempotent. The SLAM
         takes no more frames; its map and trajectory so far stay readable."""
         self._finished = True
+        if self._loop_search is not None:
+            self._loop_search.close()
         self._stop_backend()
 
     # -------------------------------------------------------------------------- state
@@ -342,10 +349,6 @@ class SLAM:
         if keyframe:
             keypoints = track.keypoints
             if not self.localize:  # a localising run keeps keyframes for tracking only
-                if self._loops:
-                    t0 = time.perf_counter()
-                    keypoints = self.tracker.keyframe_keypoints(rgb, observation.cloud, keypoints)
-                    stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
                 T_world_cam = self._add_keyframe(
                     index, timestamp, observation, track, rgb, stage_ms, keypoints
                 )
@@ -457,10 +460,11 @@ class SLAM:
         keypoints: Keypoints | None,
     ) -> np.ndarray:
         """Merge the frame into the map and hand it to the backend (after applying the
-        previous keyframe's update if it is still pending) with its loop constraint, if
-        its `keypoints` place it against an older keyframe (`Tracker.find_loop`). Returns
-        the frame's pose: corrected by that update, or with `lag_frames` 0 the backend's
-        own."""
+        previous keyframe's update if it is still pending) with the previous keyframe's
+        loop constraint, if its search found one, and start this keyframe's loop search
+        on the loop search's thread (`Tracker.search_loop`: from its `keypoints`, or
+        detected in `rgb`). Returns the frame's pose: corrected by that update, or with
+        `lag_frames` 0 the backend's own."""
         T_world_cam = track.T_world_cam
         moved: tuple[int, ...] = ()
         if self._pending:
@@ -469,13 +473,16 @@ class SLAM:
             correction = self._apply_update(self.backend.collect(), merge_segments=False)
             T_world_cam = orthonormalize_pose(correction @ T_world_cam)
             stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
-        loop = None
-        if self._loops:
+        loops: tuple[LoopConstraint, ...] = ()
+        if self._loop_search is not None:
             t0 = time.perf_counter()
-            loop = self.tracker.find_loop(index, observation, keypoints, T_world_cam)
-            if loop is not None:
-                self.loops.append((index, loop.old_index))
-            stage_ms["loops"] = stage_ms.get("loops", 0.0) + 1e3 * (time.perf_counter() - t0)
+            loops = self._collect_loop()
+            cloud = observation.cloud
+            images = None if rgb is None or cloud is None else (rgb, cloud)
+            query = self.tracker.loop_query(index, observation, T_world_cam, keypoints, images)
+            if query is not None:
+                self._loop_search.submit(query)
+            stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
         merged = self.map.merge(
             observation,
@@ -502,7 +509,7 @@ class SLAM:
                 corner_ids=merged.corners,
                 T_prev_cam=T_prev_cam,
                 joined_planes=tuple(self._joined_planes),
-                loops=() if loop is None else (loop,),
+                loops=loops,
             )
         )
         self._joined_planes = []
@@ -515,6 +522,19 @@ class SLAM:
             T_world_cam = self._keyframe_online[index]
         stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         return T_world_cam
+
+    def _collect_loop(self) -> tuple[LoopConstraint, ...]:
+        """The previous keyframe's loop search (waiting for it): its keypoints join the
+        keypoint map, its loop constraint (if any) is returned and counted in `loops`."""
+        assert self._loop_search is not None
+        outcome = self._loop_search.collect()
+        if outcome is None:
+            return ()
+        self.tracker.take_loop_keypoints(outcome)
+        if outcome.loop is None:
+            return ()
+        self.loops.append((outcome.loop.index, outcome.loop.old_index))
+        return (outcome.loop,)
 
     def _apply_update(
         self, update: KeyframeUpdate, move_last_tracked: bool = True, merge_segments: bool = True
@@ -611,6 +631,11 @@ class SLAM:
         start = time.perf_counter()
         self._finished = True
         self._pending = None  # the final state below supersedes its update
+        if self._loop_search is not None:  # the last keyframe's: its keypoints only, no
+            outcome = self._loop_search.collect()  # later keyframe takes its loop
+            if outcome is not None:
+                self.tracker.take_loop_keypoints(outcome)
+            self._loop_search.close()
         try:
             result = self.backend.finish()
         finally:

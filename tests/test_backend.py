@@ -277,7 +277,8 @@ def test_a_loop_constraint_closes_the_loop(room_loop, window: int) -> None:
     against the first (its true relative pose, as keypoints would measure it) closes it
     with the whole graph. With a 6-keyframe window (keyframe 0 left it long before and
     comes back held by its own factors) it moves only the window's keyframes, so it takes
-    back a part of the drift. A loop against a keyframe the graph does not hold is refused."""
+    back a part of the drift. A loop against a keyframe the graph does not hold is refused;
+    a keyframe's loop found late comes with a later keyframe and ties the one it names."""
     scene, T_true, odometry, observations = room_loop
     late = len(T_true) - 10
     ends = {}
@@ -295,7 +296,7 @@ def test_a_loop_constraint_closes_the_loop(room_loop, window: int) -> None:
             loops = ()
             if with_loop and i == len(T_true) - 1:
                 T_first_cam = invert_pose(T_true[0]) @ T_true[i]
-                loops = (LoopConstraint(old_index=0, T_old_cam=T_first_cam, inliers=100),)
+                loops = (LoopConstraint(i, old_index=0, T_old_cam=T_first_cam, inliers=100),)
             T_guess = T_prev if i == 0 else T_prev @ odometry[i - 1]
             T_prev = backend.add_keyframe(
                 i,
@@ -314,11 +315,28 @@ def test_a_loop_constraint_closes_the_loop(room_loop, window: int) -> None:
         assert ends[True] < ends[False] / 1.4, ends
     else:  # measured 1.42 -> 0.26 cm
         assert ends[True] < 0.005 and ends[True] < ends[False] / 3, ends
-    stray = LoopConstraint(old_index=999, T_old_cam=np.eye(4), inliers=100)
+    stray = LoopConstraint(len(T_true), old_index=999, T_old_cam=np.eye(4), inliers=100)
     with pytest.raises(ConfigError, match="keyframe 999"):
         backend.add_keyframe(
             len(T_true), 99.0, T_prev, observations[0], {}, None, np.eye(4), loops=(stray,)
         )
+    ahead = LoopConstraint(len(T_true) + 1, old_index=0, T_old_cam=np.eye(4), inliers=100)
+    with pytest.raises(ConfigError, match=f"keyframe {len(T_true) + 1}: not a keyframe"):
+        backend.add_keyframe(
+            len(T_true), 99.0, T_prev, observations[0], {}, None, np.eye(4), loops=(ahead,)
+        )
+    # The last keyframe's loop, found late (as planeslam's search beside tracking delivers
+    # it): it comes with the next keyframe and ties the keyframe it names.
+    T_first_last = invert_pose(T_true[0]) @ T_true[-1]
+    late_loop = LoopConstraint(len(T_true) - 1, old_index=0, T_old_cam=T_first_last, inliers=1)
+    before = backend.num_factors
+    backend.add_keyframe(
+        len(T_true), 99.0, T_prev, observations[0], {}, None, np.eye(4), loops=(late_loop,)
+    )
+    assert backend.failures == 0
+    graph = backend._graph  # every committed factor
+    keys = {tuple(graph.at(i).keys()) for i in range(before, graph.size())}
+    assert (backend.keys.pose(0), backend.keys.pose(len(T_true) - 1)) in keys, keys
 
 
 def one_plane_observation(scene, T_world_cam, plane_index: int) -> Observed:

@@ -16,6 +16,7 @@ from planeslam.tracking.config import PointConfig, TrackingConfig
 from planeslam.tracking.keypoints import (
     KeypointDetector,
     KeypointMap,
+    Keypoints,
     inlier_threshold,
     match_descriptors,
     ransac_pose,
@@ -156,35 +157,117 @@ def test_point_evidence_that_no_rival_could_match_is_the_only_candidate(
     assert_pose_close(tried.poses[0], T, 1e-3, 0.05)
 
 
+def loop_views():
+    """The box-in-a-room circle's path and its views 0, 1 and 12 (rendered with seed 5),
+    and a keypoint detector."""
+    from planeslam.sim.render import render_frame
+    from planeslam.sim.scenes import box_room_circle
+
+    scene, path = box_room_circle()
+    rng = np.random.default_rng(5)
+    views = {k: render_frame(scene, path.T_world_cam[k], CAMERA, rng) for k in (0, 1, 12)}
+    return path, views, KeypointDetector(CAMERA, SENSOR, PointConfig())
+
+
+def drifted(T_world_cam: np.ndarray) -> np.ndarray:
+    """The pose (4, 4) tracked 8 cm off sideways and 2 cm along the depth."""
+    T = T_world_cam.copy()
+    T[:3, 3] += [0.08, 0.0, -0.02]
+    return T
+
+
 def test_a_drifted_keyframe_finds_its_loop_against_the_older_keyframe() -> None:
     """Keyframe 0 of the box-in-a-room circle, then one far round the circle (the recent
     one); view 1 (15 deg and 18 cm from view 0) tracked 8 cm off its true pose: its
     keypoints place it against keyframe 0 (`find_loop`) within 2 cm / 1 deg of the true
     relative pose. Tracked where it is, it needs no loop; with keyframe 0 among the recent
     ones, none is looked for."""
-    from planeslam.sim.render import render_frame
-    from planeslam.sim.scenes import box_room_circle
     from planeslam.tracking.config import LoopConfig
     from planeslam.tracking.loops import find_loop
 
-    scene, path = box_room_circle()
+    path, views, detector = loop_views()
     rng = np.random.default_rng(5)
-    views = {k: render_frame(scene, path.T_world_cam[k], CAMERA, rng) for k in (0, 1, 12)}
-    detector = KeypointDetector(CAMERA, SENSOR, PointConfig())
     store = KeypointMap(detector)
     for k in (0, 12):
         keypoints = detector.detect(views[k].rgb, cloud_of(views[k].depth_m))
         store.add(k, path.T_world_cam[k], None, None, keypoints)
     query = detector.detect(views[1].rgb, cloud_of(views[1].depth_m))
     T_true = path.T_world_cam[1]
-    T_drifted = T_true.copy()
-    T_drifted[:3, 3] += [0.08, 0.0, -0.02]
+    T_drifted = drifted(T_true)
     cfg = LoopConfig(skip_recent=1)
 
-    loop = find_loop(store, query, T_drifted, cfg, PointConfig(), SENSOR, rng)
-    assert loop is not None and loop.old_index == 0 and loop.inliers >= cfg.min_inliers
+    loop = find_loop(store, 1, query, T_drifted, cfg, PointConfig(), SENSOR, rng)
+    assert loop is not None and (loop.index, loop.old_index) == (1, 0)
+    assert loop.inliers >= cfg.min_inliers
     T_old_cam_true = invert_pose(path.T_world_cam[0]) @ T_true
     assert_pose_close(loop.T_old_cam, T_old_cam_true, 0.02, 1.0)
-    assert find_loop(store, query, T_true, cfg, PointConfig(), SENSOR, rng) is None
+    assert find_loop(store, 1, query, T_true, cfg, PointConfig(), SENSOR, rng) is None
     recent = LoopConfig(skip_recent=2)
-    assert find_loop(store, query, T_drifted, recent, PointConfig(), SENSOR, rng) is None
+    assert find_loop(store, 1, query, T_drifted, recent, PointConfig(), SENSOR, rng) is None
+
+
+def test_the_loop_search_beside_tracking_finds_the_same_loop_on_a_snapshot() -> None:
+    """The drifted view of the test above, searched by `LoopSearch` on its worker thread
+    from its images (the search detects the keypoints): the outcome collected later is the
+    loop `find_loop` finds in place, although the keypoint map changed after the query
+    was taken (keyframe 0 moved by 30 cm, a keyframe added that makes keyframe 12 a
+    candidate): the query holds a snapshot. A second query before collecting is refused;
+    the worker's error reaches the collector."""
+    from planeslam.tracking.config import LoopConfig
+    from planeslam.tracking.loops import (
+        LoopOutcome,
+        LoopSearch,
+        find_loop,
+        loop_query,
+        place_loop,
+    )
+
+    path, views, detector = loop_views()
+    store = KeypointMap(detector)
+    for k in (0, 12):
+        store.add(k, path.T_world_cam[k], views[k].rgb, cloud_of(views[k].depth_m))
+    images = (views[1].rgb, cloud_of(views[1].depth_m))
+    T_drifted = drifted(path.T_world_cam[1])
+    cfg = LoopConfig(skip_recent=1)
+    query = loop_query(store, 1, T_drifted, cfg, images=images)
+    assert query is not None and query.keypoints is None
+
+    def search(q):
+        keypoints = KeypointDetector(CAMERA, SENSOR, PointConfig()).detect(*q.images)
+        loop = place_loop(q, keypoints, cfg, PointConfig(), SENSOR, np.random.default_rng(7))
+        return LoopOutcome(q.index, keypoints, loop)
+
+    loops = LoopSearch(search)
+    loops.submit(query)
+    with pytest.raises(RuntimeError, match="collect the previous"):
+        loops.submit(query)
+    T_moved = path.T_world_cam[0].copy()
+    T_moved[:3, 3] += 0.3
+    store.move(0, T_moved)
+    store.add(13, path.T_world_cam[12], None, None, Keypoints.empty())
+    np.testing.assert_array_equal(query.candidates.pose(0), path.T_world_cam[0])
+    assert len(query.candidates) == 1
+    outcome = loops.collect()
+    assert outcome is not None and outcome.index == 1 and outcome.loop is not None
+    assert loops.collect() is None
+    store.move(0, path.T_world_cam[0])
+    in_place = find_loop(
+        store, 1, outcome.keypoints, T_drifted, cfg, PointConfig(), SENSOR, np.random.default_rng(7)
+    )
+    assert in_place is not None
+    assert (
+        (outcome.loop.index, outcome.loop.old_index)
+        == (in_place.index, in_place.old_index)
+        == (1, 0)
+    )
+    np.testing.assert_allclose(outcome.loop.T_old_cam, in_place.T_old_cam, atol=1e-9)
+
+    def broken(q):
+        raise ValueError("search failed")
+
+    failing = LoopSearch(broken)
+    failing.submit(query)
+    with pytest.raises(ValueError, match="search failed"):
+        failing.collect()
+    loops.close()
+    failing.close()

@@ -55,7 +55,9 @@ class KeyframeInput:
     """(absorbed, surviving) map plane ids the map joined since the last keyframe
     (`Map.merge_same_segments`): one plane, to be tied in the graph too."""
     loops: tuple[LoopConstraint, ...] = ()
-    """Its poses against older keyframes it revisits (`planeslam.tracking.loops`)."""
+    """Poses of it or of earlier keyframes (`LoopConstraint.index`: planeslam's loop search
+    delivers a keyframe's with the next one, a larger stack's may be later still) against
+    older keyframes they revisit (`planeslam.tracking.loops`)."""
 
 
 @dataclass(frozen=True)

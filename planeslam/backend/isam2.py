@@ -141,9 +141,11 @@ class Isam2Backend:
         trans [m]) or (6,) sigmas (rotation first) overriding the config's.
         joined_planes: (absorbed, surviving) plane landmark ids the map found to be one
         plane since the last keyframe; with `tie_joined_planes` each pair gets a tie
-        (`PlaneLandmarks.join_planes`). loops: this keyframe's poses against older
-        keyframes, each a Huber-robust BetweenFactorPose3 (`loop_sigma_*`); an older
-        keyframe outside the window comes back into it held by its own factors.
+        (`PlaneLandmarks.join_planes`). loops: poses of this keyframe or of earlier ones
+        (`LoopConstraint.index`: planeslam's loop search delivers a keyframe's with the
+        next one, a larger stack's may be later still) against older keyframes, each a
+        Huber-robust BetweenFactorPose3 (`loop_sigma_*`); an older keyframe outside the
+        window comes back into it held by its own factors.
         """
         if isinstance(index, bool) or int(index) != index:
             raise ConfigError(f"keyframe index {index!r}: expected an integer")
@@ -179,7 +181,7 @@ class Isam2Backend:
                 )
             )
         for loop in loops:
-            pose_graph.add(self._loop_factor(loop, pose_key))
+            pose_graph.add(self._loop_factor(loop, index))
         landmark_graph = gtsam.NonlinearFactorGraph()
         landmark_values = gtsam.Values()
         added = self.landmarks.add_observations(
@@ -220,13 +222,16 @@ class Isam2Backend:
         self._last_index = index
         return self._estimate.atPose3(pose_key).matrix()
 
-    def _loop_factor(self, loop: LoopConstraint, pose_key: int) -> gtsam.BetweenFactorPose3:
-        """The relative-pose factor of a loop constraint (ConfigError when its older
-        keyframe is not in the graph)."""
-        old_key = self.keys.pose(loop.old_index)
-        if not self._estimate.exists(old_key):
+    def _loop_factor(self, loop: LoopConstraint, index: int) -> gtsam.BetweenFactorPose3:
+        """The relative-pose factor of a loop constraint, added with keyframe `index`
+        (ConfigError when its keyframes are neither in the graph nor this one)."""
+        for name, frame in (("keyframe", loop.index), ("older keyframe", loop.old_index)):
+            if frame != index and not self._estimate.exists(self.keys.pose(frame)):
+                raise ConfigError(f"loop {name} {frame}: not a keyframe of the graph")
+        if loop.old_index >= loop.index or loop.index > index:
             raise ConfigError(
-                f"loop against keyframe {loop.old_index}: not a keyframe of the graph"
+                f"loop of keyframe {loop.index} against {loop.old_index} added with keyframe "
+                f"{index}: expected older keyframe < keyframe <= {index}"
             )
         cfg = self.config
         sigmas = np.r_[[cfg.loop_sigma_rot_rad] * 3, [cfg.loop_sigma_trans_m] * 3]
@@ -235,7 +240,12 @@ class Isam2Backend:
             gtsam.noiseModel.Diagonal.Sigmas(sigmas),
         )
         T_old_cam = as_pose(loop.T_old_cam, "loop.T_old_cam")
-        return gtsam.BetweenFactorPose3(old_key, pose_key, gtsam.Pose3(T_old_cam), noise)
+        return gtsam.BetweenFactorPose3(
+            self.keys.pose(loop.old_index),
+            self.keys.pose(loop.index),
+            gtsam.Pose3(T_old_cam),
+            noise,
+        )
 
     def _taken_back(
         self, own: list[gtsam.NonlinearFactor], values: gtsam.Values, added: AddedFactors

@@ -142,10 +142,12 @@ class LoopConstraint:
     both keyframes' planes (`planeslam.tracking.loops`): a relative pose for the backend's
     graph."""
 
+    index: int
+    """Frame index of the keyframe placed."""
     old_index: int
     """Frame index of the older keyframe."""
     T_old_cam: np.ndarray
-    """(4, 4) the new keyframe's pose in the older keyframe's camera frame."""
+    """(4, 4) the keyframe's pose in the older keyframe's camera frame."""
     inliers: int
     """Keypoint matches that agree with the points' pose."""
 

@@ -103,10 +103,11 @@ class LoopConfig:
     `points.every_keyframe` true in effect (every keyframe's keypoints are detected)."""
 
     enabled: bool = False
-    """Look for a loop at every keyframe. Off by default: on 7-Scenes (colour and depth not
-    registered) the loops' relative poses are about as far off the truth as the drift they
-    would correct, and the wide baselines and the five-pass replay got worse (README,
-    "An option since the table: loop constraints")."""
+    """Look for a loop at every keyframe (on a thread beside tracking). Off by default: on
+    7-Scenes (colour and depth not registered) the loops' relative poses are about as far
+    off the truth as the drift they would correct, and which runs they improve changes
+    with their sigmas and with the keyframe that delivers them (README, "An option since
+    the table: loop constraints" and "The loop search beside tracking")."""
     skip_recent: int = 20
     """The most recent keyframes are not candidates (tracking already joins them)."""
     search_radius_m: float = 1.0

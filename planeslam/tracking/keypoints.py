@@ -257,6 +257,27 @@ class KeypointMap:
         if kf is not None:
             kf.T_world_cam = np.array(T_world_cam)
 
+    def snapshot(self, indices: np.ndarray) -> KeypointMap:
+        """A snapshot of the keyframes `indices` (frame indices, any order): their keypoints
+        (computed now if due) and poses as they are, in the map's order, sharing the
+        detector. Later changes to this map do not reach it, so another thread can search
+        it (`planeslam.tracking.loops.LoopSearch`)."""
+        wanted = {int(i) for i in indices}
+        snapshot = KeypointMap(self.detector)
+        for index, kf in self._keyframes.items():
+            if index in wanted:
+                keypoints = self._keypoints(kf)
+                snapshot._keyframes[index] = _Keyframe(index, kf.T_world_cam, keypoints)
+        return snapshot
+
+    def give_keypoints(self, index: int, keypoints: Keypoints) -> None:
+        """Keyframe `index`'s keypoints, detected elsewhere from its images (the loop
+        search's thread), unless they were computed here meanwhile."""
+        kf = self._keyframes.get(index)
+        if kf is not None and kf.keypoints is None:
+            kf.keypoints, kf.images = keypoints, None
+            self._stack = None
+
     def _keypoints(self, kf: _Keyframe) -> Keypoints | None:
         if kf.keypoints is None and kf.images is not None:
             kf.keypoints = self.detector.detect(*kf.images)

@@ -14,12 +14,21 @@ the older keyframe's camera frame) when it moves the tracked pose by more than t
 (`min_correction_*`) and less than a false match would (`max_correction_*`). The backend
 adds it as a relative-pose factor, so the optimised poses take the revisited map back
 onto the old one.
+
+The search runs beside tracking, on one worker thread (`LoopSearch`, as ORB-SLAM's loop
+closing runs beside its tracking): at a keyframe the tracking thread takes a `LoopQuery`
+(the nearby older keyframes' keypoints and poses as a snapshot, and the new keyframe's
+images), the worker detects the keyframe's keypoints and places it (`place_loop`), and
+the next keyframe collects the outcome (its keypoints join the keypoint map) and takes
+the loop to the graph. `find_loop` does both in place.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -62,8 +71,56 @@ def nearby_older_keyframes(
     return indices[near[order[: cfg.pool]]]
 
 
+@dataclass(frozen=True)
+class LoopQuery:
+    """One new keyframe's loop search as taken on the tracking thread (`loop_query`): what
+    `place_loop` needs, so that it can run beside tracking, which goes on changing the
+    keypoint map."""
+
+    index: int
+    """Frame index of the new keyframe."""
+    T_world_cam: np.ndarray
+    """(4, 4) its tracked pose."""
+    candidates: KeypointMap
+    """A snapshot of the older keyframes it may revisit (`nearby_older_keyframes`)."""
+    keypoints: Keypoints | None = None
+    """Its keypoints when tracking computed them ..."""
+    images: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False)
+    """... else its (H, W, 3) uint8 RGB and (H, W, 3) organised cloud [m] to detect them in."""
+
+
+@dataclass(frozen=True)
+class LoopOutcome:
+    """What one keyframe's loop search found."""
+
+    index: int
+    """Frame index of the keyframe."""
+    keypoints: Keypoints
+    """Its keypoints (detected by the search when the query had images only)."""
+    loop: LoopConstraint | None
+
+
+def loop_query(
+    keypoint_map: KeypointMap,
+    index: int,
+    T_world_cam: np.ndarray,
+    cfg: LoopConfig,
+    keypoints: Keypoints | None = None,
+    images: tuple[np.ndarray, np.ndarray] | None = None,
+) -> LoopQuery | None:
+    """The loop search of new keyframe `index` tracked at T_world_cam (4, 4), with its
+    `keypoints` or the `images` to detect them in, against the older keyframes of
+    `keypoint_map` it may revisit (none: the search only detects its keypoints); None
+    with neither keypoints nor images."""
+    if keypoints is None and images is None:
+        return None
+    nearby = nearby_older_keyframes(keypoint_map, T_world_cam, cfg)
+    return LoopQuery(index, np.array(T_world_cam), keypoint_map.snapshot(nearby), keypoints, images)
+
+
 def find_loop(
     keypoint_map: KeypointMap,
+    index: int,
     keypoints: Keypoints,
     T_world_cam: np.ndarray,
     cfg: LoopConfig,
@@ -72,20 +129,34 @@ def find_loop(
     rng: np.random.Generator,
     refine: Refine | None = None,
 ) -> LoopConstraint | None:
-    """The loop constraint of a new keyframe (its `keypoints`, tracked at T_world_cam
-    (4, 4)) against the older keyframes of `keypoint_map` (module docstring), or None.
-    `refine(old, T_old_cam, matches)`: the points' pose in the older keyframe's camera
-    frame refined by other evidence (its matches given in that frame), or None to drop it."""
+    """The loop constraint of new keyframe `index` (its `keypoints`, tracked at
+    T_world_cam (4, 4)) against the older keyframes of `keypoint_map` (module docstring),
+    or None: `loop_query` and `place_loop` in one go."""
+    query = loop_query(keypoint_map, index, T_world_cam, cfg, keypoints)
+    if query is None:
+        return None
+    return place_loop(query, keypoints, cfg, points, sensor, rng, refine)
+
+
+def place_loop(
+    query: LoopQuery,
+    keypoints: Keypoints,
+    cfg: LoopConfig,
+    points: PointConfig,
+    sensor: DepthNoiseConfig,
+    rng: np.random.Generator,
+    refine: Refine | None = None,
+) -> LoopConstraint | None:
+    """The loop constraint of `query`'s keyframe (its `keypoints`) against its candidates,
+    or None. `refine(old, T_old_cam, matches)`: the points' pose in the older keyframe's
+    camera frame refined by other evidence (its matches given in that frame), or None to
+    drop it."""
     if len(keypoints) < cfg.min_inliers:
         return None
-    nearby = nearby_older_keyframes(keypoint_map, T_world_cam, cfg)
-    if not len(nearby):
-        return None
+    candidates, T_world_cam = query.candidates, query.T_world_cam
     best: tuple[int, PointPose, PointMatches] | None = None
-    for old in keypoint_map.vote(
-        keypoints, cfg.candidates, among=nearby, strongest=points.vote_descriptors
-    ):
-        matches = keypoint_map.matches(keypoints, [old])
+    for old in candidates.vote(keypoints, cfg.candidates, strongest=points.vote_descriptors):
+        matches = candidates.matches(keypoints, [old])
         if len(matches) < cfg.min_inliers:
             continue
         p_cam = keypoints.points_cam[matches.observed]
@@ -104,7 +175,7 @@ def find_loop(
     if best is None:
         return None
     old, found, matches = best
-    T_world_old = keypoint_map.pose(old)
+    T_world_old = candidates.pose(old)
     T_old_world = invert_pose(T_world_old)
     T_old_cam = T_old_world @ found.T_world_cam
     if refine is not None:
@@ -130,4 +201,36 @@ def find_loop(
         degrees,
         found.count,
     )
-    return LoopConstraint(old_index=old, T_old_cam=T_old_cam, inliers=found.count)
+    return LoopConstraint(
+        index=query.index, old_index=old, T_old_cam=T_old_cam, inliers=found.count
+    )
+
+
+class LoopSearch:
+    """Loop searches on one worker thread beside tracking. `submit` hands over a keyframe's
+    `LoopQuery`; `collect`, at the next keyframe, waits for that search and returns its
+    outcome, so the loops a run finds and the keyframe that carries each to the graph do
+    not depend on timing. `search(query)` runs on the worker: it must touch nothing the
+    tracking thread changes (the query holds snapshots)."""
+
+    def __init__(self, search: Callable[[LoopQuery], LoopOutcome]) -> None:
+        self._search = search
+        self._executor = ThreadPoolExecutor(1, thread_name_prefix="planeslam-loops")
+        self._pending: Future[LoopOutcome] | None = None
+
+    def submit(self, query: LoopQuery) -> None:
+        """Start `query`'s search (after collecting the previous one)."""
+        if self._pending is not None:
+            raise RuntimeError("collect the previous loop search before submitting another")
+        self._pending = self._executor.submit(self._search, query)
+
+    def collect(self) -> LoopOutcome | None:
+        """The outcome of the search submitted last (waiting for it; its error re-raised
+        here), or None when none is pending."""
+        pending, self._pending = self._pending, None
+        return None if pending is None else pending.result()
+
+    def close(self) -> None:
+        """Drop a pending search and stop the worker once it is idle (idempotent)."""
+        self._pending = None
+        self._executor.shutdown(wait=False, cancel_futures=True)

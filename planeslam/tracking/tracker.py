@@ -50,7 +50,7 @@ import numpy as np
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
-from planeslam.core.types import LoopConstraint, TrackingPath
+from planeslam.core.types import TrackingPath
 from planeslam.tracking.association import (
     Association,
     associate_with_corners,
@@ -82,7 +82,7 @@ from planeslam.tracking.keypoints import (
     point_residuals,
     ransac_pose,
 )
-from planeslam.tracking.loops import find_loop
+from planeslam.tracking.loops import LoopOutcome, LoopQuery, loop_query, place_loop
 from planeslam.tracking.registration import (
     RegistrationResult,
     RegistrationStatus,
@@ -262,7 +262,10 @@ class Tracker:
             max_sigma_rad=np.radians(config.max_sigma_deg), max_sigma_m=config.max_sigma_m
         )
         self._keyframe_frames: dict[int, FrameView] = {}
-        """Each keyframe's observation, camera frame (for loops: `find_loop`)."""
+        """Each keyframe's observation, camera frame (for loops: `search_loop`)."""
+        self._loop_rng = np.random.default_rng([seed, 1])
+        """The loop search's own draws (it may run beside tracking's)."""
+        self._loop_keypoint_detector: KeypointDetector | None = None
         self._previous_cloud: np.ndarray | None = None
         """(H, W, 3) organised cloud of the last tracked frame (ICP fallback)."""
         self._previous_rgbd: tuple[np.ndarray, np.ndarray] | None = None
@@ -288,35 +291,39 @@ class Tracker:
         if self.keypoint_map is not None:
             self.keypoint_map.add(index, T_world_cam, rgb, cloud, keypoints)
 
-    def keyframe_keypoints(
-        self, rgb: np.ndarray | None, cloud: np.ndarray | None, keypoints: Keypoints | None
-    ) -> Keypoints | None:
-        """A new keyframe's keypoints for loop detection (`find_loop`): `keypoints` if
-        tracking computed them, else detected in its (H, W, 3) RGB and organised cloud;
-        None without keypoints (`points.enabled`) or colour."""
-        if keypoints is not None or self.keypoint_map is None or rgb is None or cloud is None:
-            return keypoints
-        return self.keypoint_map.detector.detect(rgb, cloud)
-
-    def find_loop(
+    def loop_query(
         self,
         index: int,
         observation: FrameObservation,
-        keypoints: Keypoints | None,
         T_world_cam: np.ndarray,
-    ) -> LoopConstraint | None:
-        """The loop constraint of new keyframe `index` (`observation`, its keypoints,
-        tracked at T_world_cam (4, 4)) against an older keyframe it revisits
-        (`loops.find_loop`), or None. With `loops.refine_planes` the points' relative pose
-        is refined by the robust estimate over both frames' planes, corners and edges and
-        the point matches (`joint`, the older keyframe's observation as the map), and
-        taken only when that is trusted and within `loops.refine_max_step_*` of it. The
-        keyframe's observation is kept for later loops against it."""
-        cfg = self.config
-        if keypoints is None or self.keypoint_map is None or not cfg.loops.enabled:
+        keypoints: Keypoints | None,
+        images: tuple[np.ndarray, np.ndarray] | None,
+    ) -> LoopQuery | None:
+        """New keyframe `index`'s loop search (`loops.loop_query`: `observation`, tracked
+        at T_world_cam (4, 4), with its keypoints or the (rgb, cloud) `images` to detect
+        them in) for `search_loop`, or None (no keypoints, or loops off). The keyframe's
+        observation is kept for later loops against it."""
+        if self.keypoint_map is None or not self.config.loops.enabled:
             return None
-        frame = FrameView.of(observation, self.camera)
-        self._keyframe_frames[index] = frame
+        self._keyframe_frames[index] = FrameView.of(observation, self.camera)
+        return loop_query(
+            self.keypoint_map, index, T_world_cam, self.config.loops, keypoints, images
+        )
+
+    def search_loop(self, query: LoopQuery) -> LoopOutcome:
+        """The loop constraint of `query`'s keyframe against an older keyframe it revisits
+        (`loops.place_loop`). With `loops.refine_planes` the points' relative pose is
+        refined by the robust estimate over both frames' planes, corners and edges and the
+        point matches (`joint`, the older keyframe's observation as the map), and taken
+        only when that is trusted and within `loops.refine_max_step_*` of it. Safe on
+        another thread than tracking's (`loops.LoopSearch`): it uses its own detector and
+        random generator and reads kept observations only."""
+        cfg = self.config
+        keypoints = query.keypoints
+        if keypoints is None:
+            assert query.images is not None  # loop_query: keypoints or images
+            keypoints = self._loop_detector().detect(*query.images)
+        frame = self._keyframe_frames[query.index]
 
         def refine(old: int, T_old_cam: np.ndarray, matches: PointMatches) -> np.ndarray | None:
             old_frame = self._keyframe_frames.get(old)
@@ -332,16 +339,30 @@ class Tracker:
                 return None
             return solve.T
 
-        return find_loop(
-            self.keypoint_map,
+        loop = place_loop(
+            query,
             keypoints,
-            T_world_cam,
             cfg.loops,
             cfg.points,
             self.sensor,
-            self.rng,
+            self._loop_rng,
             refine if cfg.loops.refine_planes else None,
         )
+        return LoopOutcome(query.index, keypoints, loop)
+
+    def take_loop_keypoints(self, outcome: LoopOutcome) -> None:
+        """The keypoints a loop search detected join the keypoint map's keyframe."""
+        if self.keypoint_map is not None:
+            self.keypoint_map.give_keypoints(outcome.index, outcome.keypoints)
+
+    def _loop_detector(self) -> KeypointDetector:
+        """The loop search's own ORB detector (OpenCV's is not shared across threads)."""
+        assert self.keypoint_map is not None and self.camera is not None
+        if self._loop_keypoint_detector is None:
+            self._loop_keypoint_detector = KeypointDetector(
+                self.camera, self.sensor, self.config.points
+            )
+        return self._loop_keypoint_detector
 
     def move_keyframe(self, index: int, T_world_cam: np.ndarray) -> None:
         """The backend corrected keyframe `index` to T_world_cam (4, 4)."""
