@@ -235,6 +235,8 @@ class SLAM:
         self.loops: list[tuple[int, int]] = []
         """(keyframe, older keyframe) frame indices of every loop constraint sent to the
         backend."""
+        self.loop_search_ms: list[float] = []
+        """Per collected loop search: its wall-clock time on the search's thread [ms]."""
         self.backend_result: BackendResult | None = None
         """What the backend reported at `finish`: update times, failures, factors."""
         self.pointcloud_bytes = 0
@@ -530,6 +532,7 @@ class SLAM:
         outcome = self._loop_search.collect()
         if outcome is None:
             return ()
+        self.loop_search_ms.append(outcome.search_ms)
         self.tracker.take_loop_keypoints(outcome)
         if outcome.loop is None:
             return ()

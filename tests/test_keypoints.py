@@ -249,6 +249,7 @@ def test_the_loop_search_beside_tracking_finds_the_same_loop_on_a_snapshot() -> 
     assert len(query.candidates) == 1
     outcome = loops.collect()
     assert outcome is not None and outcome.index == 1 and outcome.loop is not None
+    assert outcome.search_ms > 0
     assert loops.collect() is None
     store.move(0, path.T_world_cam[0])
     in_place = find_loop(

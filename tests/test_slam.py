@@ -243,8 +243,12 @@ def test_a_revisit_sends_loop_constraints_that_keep_the_poses(loop: Path) -> Non
     assert len(slam.loops) >= 3, slam.loops
     for index, old in slam.loops:
         assert keyframes.index(index) - keyframes.index(old) > 5  # not among the recent
-    assert slam_run_metrics(slam, summary).backend["loops"] == len(slam.loops)
+    figures = slam_run_metrics(slam, summary).backend
+    assert figures["loops"] == len(slam.loops)
+    assert len(slam.loop_search_ms) == len(keyframes) - 1  # the last one's is not collected
+    assert figures["loop_search_ms_median"] > 0  # timed on the search's thread
     assert not results[False][0].loops
+    assert "loop_search_ms_median" not in slam_run_metrics(*results[False][:2]).backend
     assert ev.ate_rmse_m < max(0.01, 1.5 * results[False][2].ate_rmse_m), (
         ev.ate_rmse_m,
         results[False][2].ate_rmse_m,

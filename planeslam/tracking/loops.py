@@ -26,9 +26,10 @@ the loop to the graph. `find_loop` does both in place.
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -98,6 +99,8 @@ class LoopOutcome:
     keypoints: Keypoints
     """Its keypoints (detected by the search when the query had images only)."""
     loop: LoopConstraint | None
+    search_ms: float = 0.0
+    """Wall-clock time of the search on its thread [ms] (`LoopSearch`)."""
 
 
 def loop_query(
@@ -222,7 +225,12 @@ class LoopSearch:
         """Start `query`'s search (after collecting the previous one)."""
         if self._pending is not None:
             raise RuntimeError("collect the previous loop search before submitting another")
-        self._pending = self._executor.submit(self._search, query)
+        self._pending = self._executor.submit(self._timed_search, query)
+
+    def _timed_search(self, query: LoopQuery) -> LoopOutcome:
+        start = time.perf_counter()
+        outcome = self._search(query)
+        return replace(outcome, search_ms=1e3 * (time.perf_counter() - start))
 
     def collect(self) -> LoopOutcome | None:
         """The outcome of the search submitted last (waiting for it; its error re-raised
