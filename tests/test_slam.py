@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from helpers import assert_pose_close
 
-from planeslam.app.runner import run_sequence
+from planeslam.app.runner import RunResult, run_sequence
 from planeslam.config import PlaneSlamConfig, resolve_config
 from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError
@@ -243,10 +243,12 @@ def test_a_revisit_sends_loop_constraints_that_keep_the_poses(loop: Path) -> Non
     assert len(slam.loops) >= 3, slam.loops
     for index, old in slam.loops:
         assert keyframes.index(index) - keyframes.index(old) > 5  # not among the recent
-    figures = slam_run_metrics(slam, summary).backend
+    metrics = slam_run_metrics(slam, summary)
+    figures = metrics.backend
     assert figures["loops"] == len(slam.loops)
     assert len(slam.loop_search_ms) == len(keyframes) - 1  # the last one's is not collected
     assert figures["loop_search_ms_median"] > 0  # timed on the search's thread
+    assert "loop search median" in RunResult(loop, summary, metrics, None).text()
     assert not results[False][0].loops
     assert "loop_search_ms_median" not in slam_run_metrics(*results[False][:2]).backend
     assert ev.ate_rmse_m < max(0.01, 1.5 * results[False][2].ate_rmse_m), (
