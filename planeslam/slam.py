@@ -69,7 +69,7 @@ from planeslam.mapping.world_map import Map
 from planeslam.tracking.estimator import PoseConstraints
 from planeslam.tracking.final_poses import FrameTerms, final_poses
 from planeslam.tracking.keypoints import Keypoints
-from planeslam.tracking.loops import LoopSearch
+from planeslam.tracking.loops import LoopOutcome, LoopSearch
 from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.segments import Segment
 from planeslam.tracking.tracker import MapView, Tracker, TrackResult
@@ -526,18 +526,25 @@ class SLAM:
         return T_world_cam
 
     def _collect_loop(self) -> tuple[LoopConstraint, ...]:
-        """The previous keyframe's loop search (waiting for it): its keypoints join the
-        keypoint map, its loop constraint (if any) is returned and counted in `loops`."""
-        assert self._loop_search is not None
-        outcome = self._loop_search.collect()
+        """The previous keyframe's loop search (`_take_loop_search`), timed; its loop
+        constraint (if any) is returned and counted in `loops`."""
+        outcome = self._take_loop_search()
         if outcome is None:
             return ()
         self.loop_search_ms.append(outcome.search_ms)
-        self.tracker.take_loop_keypoints(outcome)
         if outcome.loop is None:
             return ()
         self.loops.append((outcome.loop.index, outcome.loop.old_index))
         return (outcome.loop,)
+
+    def _take_loop_search(self) -> LoopOutcome | None:
+        """The pending loop search's outcome (waiting for it), its keypoints given to the
+        keypoint map; None when none is pending."""
+        assert self._loop_search is not None
+        outcome = self._loop_search.collect()
+        if outcome is not None:
+            self.tracker.take_loop_keypoints(outcome)
+        return outcome
 
     def _apply_update(
         self, update: KeyframeUpdate, move_last_tracked: bool = True, merge_segments: bool = True
@@ -635,9 +642,7 @@ class SLAM:
         self._finished = True
         self._pending = None  # the final state below supersedes its update
         if self._loop_search is not None:  # the last keyframe's: its keypoints only, no
-            outcome = self._loop_search.collect()  # later keyframe takes its loop
-            if outcome is not None:
-                self.tracker.take_loop_keypoints(outcome)
+            self._take_loop_search()  # later keyframe takes its loop
             self._loop_search.close()
         try:
             result = self.backend.finish()

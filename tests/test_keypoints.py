@@ -176,6 +176,15 @@ def drifted(T_world_cam: np.ndarray) -> np.ndarray:
     return T
 
 
+def find_loop(store, index, keypoints, T_world_cam, cfg, points, sensor, rng):
+    """Keyframe `index`'s loop searched in place: `loop_query`, then `place_loop`."""
+    from planeslam.tracking.loops import loop_query, place_loop
+
+    query = loop_query(store, index, T_world_cam, cfg, keypoints)
+    assert query is not None
+    return place_loop(query, keypoints, cfg, points, sensor, rng)
+
+
 def test_a_drifted_keyframe_finds_its_loop_against_the_older_keyframe() -> None:
     """Keyframe 0 of the box-in-a-room circle, then one far round the circle (the recent
     one); view 1 (15 deg and 18 cm from view 0) tracked 8 cm off its true pose: its
@@ -183,7 +192,6 @@ def test_a_drifted_keyframe_finds_its_loop_against_the_older_keyframe() -> None:
     relative pose. Tracked where it is, it needs no loop; with keyframe 0 among the recent
     ones, none is looked for."""
     from planeslam.tracking.config import LoopConfig
-    from planeslam.tracking.loops import find_loop
 
     path, views, detector = loop_views()
     rng = np.random.default_rng(5)
@@ -214,13 +222,7 @@ def test_the_loop_search_beside_tracking_finds_the_same_loop_on_a_snapshot() -> 
     candidate): the query holds a snapshot. A second query before collecting is refused;
     the worker's error reaches the collector."""
     from planeslam.tracking.config import LoopConfig
-    from planeslam.tracking.loops import (
-        LoopOutcome,
-        LoopSearch,
-        find_loop,
-        loop_query,
-        place_loop,
-    )
+    from planeslam.tracking.loops import LoopOutcome, LoopSearch, loop_query, place_loop
 
     path, views, detector = loop_views()
     store = KeypointMap(detector)

@@ -20,7 +20,7 @@ closing runs beside its tracking): at a keyframe the tracking thread takes a `Lo
 (the nearby older keyframes' keypoints and poses as a snapshot, and the new keyframe's
 images), the worker detects the keyframe's keypoints and places it (`place_loop`), and
 the next keyframe collects the outcome (its keypoints join the keypoint map) and takes
-the loop to the graph. `find_loop` does both in place.
+the loop to the graph.
 """
 
 from __future__ import annotations
@@ -119,26 +119,6 @@ def loop_query(
         return None
     nearby = nearby_older_keyframes(keypoint_map, T_world_cam, cfg)
     return LoopQuery(index, np.array(T_world_cam), keypoint_map.snapshot(nearby), keypoints, images)
-
-
-def find_loop(
-    keypoint_map: KeypointMap,
-    index: int,
-    keypoints: Keypoints,
-    T_world_cam: np.ndarray,
-    cfg: LoopConfig,
-    points: PointConfig,
-    sensor: DepthNoiseConfig,
-    rng: np.random.Generator,
-    refine: Refine | None = None,
-) -> LoopConstraint | None:
-    """The loop constraint of new keyframe `index` (its `keypoints`, tracked at
-    T_world_cam (4, 4)) against the older keyframes of `keypoint_map` (module docstring),
-    or None: `loop_query` and `place_loop` in one go."""
-    query = loop_query(keypoint_map, index, T_world_cam, cfg, keypoints)
-    if query is None:
-        return None
-    return place_loop(query, keypoints, cfg, points, sensor, rng, refine)
 
 
 def place_loop(
