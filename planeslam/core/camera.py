@@ -110,12 +110,21 @@ class DepthNoiseConfig:
     """Constant term a [m]."""
     sigma_b_per_m: float = 0.0019
     """Quadratic coefficient b [1/m]."""
+    inverse_depth_step_per_m: float = 0.00285
+    """Step of the sensor's quantised 1/z [1/m] (Kinect v1: 1/8 px of disparity at
+    580 px x 7.5 cm; 7-Scenes, TUM fr1 and ICL-NUIM all show 0.00285); far planes whose
+    fit the rounding could bias are refit for it (`core.quantised_fit`). 0: not quantised."""
 
     def __post_init__(self) -> None:
         if not float(self.sigma_a_m) > 0:
             raise ConfigError(f"sensor.sigma_a_m must be > 0, got {self.sigma_a_m!r}")
         if not float(self.sigma_b_per_m) >= 0:
             raise ConfigError(f"sensor.sigma_b_per_m must be >= 0, got {self.sigma_b_per_m!r}")
+        if not float(self.inverse_depth_step_per_m) >= 0:
+            raise ConfigError(
+                "sensor.inverse_depth_step_per_m must be >= 0 (0: depth not quantised), "
+                f"got {self.inverse_depth_step_per_m!r}"
+            )
 
     @overload
     def sigma_m(self, z_m: float) -> float: ...

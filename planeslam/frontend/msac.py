@@ -204,7 +204,14 @@ def _segment_msac(
         pix = np.flatnonzero(labels == new_id)
         xyz = np.stack([c.ravel()[pix] for c in (x, y, z)]).astype(np.float64)
         plane = build_plane(
-            new_id, xyz, lab_small, boxes[new_id], grid, cfg.outline_epsilon_px, OUTLINE_STRIDE
+            new_id,
+            xyz,
+            lab_small,
+            boxes[new_id],
+            grid,
+            cfg.outline_epsilon_px,
+            OUTLINE_STRIDE,
+            noise,
         )
         if plane is not None:
             planes.append(plane)

@@ -669,7 +669,14 @@ def _segment_organized(
         a, b = bounds[new_id], bounds[new_id + 1]
         box = boxes[new_id]
         plane = build_plane(
-            new_id, xyz[:, a:b], lab_small, box, grid.pixels, cfg.outline_epsilon_px, outline_stride
+            new_id,
+            xyz[:, a:b],
+            lab_small,
+            box,
+            grid.pixels,
+            cfg.outline_epsilon_px,
+            outline_stride,
+            noise,
         )
         if plane is not None:
             planes.append(plane)

@@ -9,6 +9,10 @@ plane's pixel mask, traced on every 3rd pixel (cv2.findContours + cv2.approxPoly
 `outline_epsilon_px`), its vertices' rays intersected with the plane.
 `Plane.covariance` comes from the least-squares fit (see `plane_fit`), in the
 tangent basis of `plane_fit.tangent_basis` (= gtsam.Unit3(n).basis()).
+A plane whose least-squares offset the sensor's 1/z rounding could bias by more than
+twice the fit's own offset sigma (far walls where the noise does not dither the rounding) takes
+the maximum-likelihood fit of `core.quantised_fit` instead; its covariance is the same
+formula about the new plane.
 """
 
 from __future__ import annotations
@@ -19,9 +23,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from planeslam.core.camera import CameraConfig, PixelRays
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import ConfigError, GeometryError
 from planeslam.core.plane_fit import moments_of_columns, plane_covariance, plane_from_moments
+from planeslam.core.quantised_fit import (
+    fit_quantised_plane,
+    inverse_depth_residual_steps,
+    quantisation_bias_m,
+)
 from planeslam.frontend.types import Plane, Segmentation
 
 log = logging.getLogger(__name__)
@@ -133,17 +142,25 @@ def build_plane(
     grid: PixelGrid,
     outline_epsilon_px: float,
     outline_stride: int = OUTLINE_STRIDE,
+    sensor: DepthNoiseConfig | None = None,
 ) -> Plane | None:
     """Refit a plane on its inliers `xyz` (3, K) float64 (rows contiguous) and derive
     covariance, area, outline; `Plane.points` is the (K, 3) transposed view of `xyz`.
 
     `labels_small` is the label image strided by `outline_stride`, `box` the
-    (rows, cols) slices bounding the plane in it (None: not in it). None when the
-    points are degenerate (collinear)."""
+    (rows, cols) slices bounding the plane in it (None: not in it). `sensor` gives the
+    1/z quantisation step (default `DepthNoiseConfig()`). None when the points are
+    degenerate (collinear)."""
     try:
         count, centroid, scatter = moments_of_columns(xyz[0], xyz[1], xyz[2])
         normal, d, rss = plane_from_moments(centroid, scatter)
         covariance = plane_covariance(normal, centroid, scatter, count, rss)
+        step = (sensor or DepthNoiseConfig()).inverse_depth_step_per_m
+        if step > 0 and _rounding_could_bias(xyz, normal, d, centroid, covariance, step):
+            try:
+                normal, d, covariance = _quantised_refit(xyz, count, centroid, scatter, step)
+            except GeometryError as exc:
+                log.debug("plane %d keeps its least-squares fit: %s", plane_id, exc)
         outline = _outline(
             plane_id, normal, d, labels_small, box, grid, outline_epsilon_px, outline_stride
         )
@@ -164,6 +181,38 @@ def build_plane(
         area_m2=area,
         outline=outline,
     )
+
+
+def _rounding_could_bias(
+    xyz: np.ndarray,
+    normal: np.ndarray,
+    d: float,
+    centroid: np.ndarray,
+    covariance: np.ndarray,
+    step: float,
+    sample: int = 4096,
+) -> bool:
+    """Whether the 1/z rounding (`step` [1/m]) could bias the least-squares plane (normal,
+    d) of the points xyz (3, K) by more than twice its own offset sigma (significant at 2
+    sigma): the noise about it, from up to `sample` evenly spread points, is too small to
+    dither the rounding at the centroid's depth."""
+    points = xyz[:, :: max(1, xyz.shape[1] // sample)].T
+    sigma_steps = inverse_depth_residual_steps(points, normal, d, step)
+    bias = quantisation_bias_m(float(centroid[2]), step, sigma_steps)
+    return bias > 2.0 * np.sqrt(covariance[2, 2])
+
+
+def _quantised_refit(
+    xyz: np.ndarray, count: int, centroid: np.ndarray, scatter: np.ndarray, step: float
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """(normal, d, covariance) of the maximum-likelihood plane of xyz (3, K) under the 1/z
+    rounding `step`, the covariance the least-squares formula about it. Raises
+    GeometryError when the fit does not converge (the caller keeps least squares)."""
+    fit = fit_quantised_plane(xyz.T, step)
+    rss = (
+        float(fit.normal @ scatter @ fit.normal) + count * float(fit.normal @ centroid + fit.d) ** 2
+    )
+    return fit.normal, fit.d, plane_covariance(fit.normal, centroid, scatter, count, rss)
 
 
 def _outline(
