@@ -9,6 +9,7 @@ import pytest
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import ConfigError, GeometryError
+from planeslam.core.plane_fit import plane_covariance, plane_from_moments
 from planeslam.core.quantised_fit import (
     _interval_terms,
     fit_quantised_plane,
@@ -67,6 +68,12 @@ def test_a_far_wall_on_few_depth_levels_is_fit_without_the_rounding_bias(rng) ->
         errors_ls.append(ls.d - d)
         errors_ml.append(ml.d - d)
         assert np.degrees(np.arccos(ml.normal @ normal)) < 0.2
+        # Its moments refit to it (map merges start from it), with the same covariance.
+        n_moments, d_moments, rss = plane_from_moments(ml.centroid, ml.scatter)
+        assert n_moments @ ml.normal == pytest.approx(1.0, abs=1e-12)
+        assert d_moments == pytest.approx(ml.d, abs=1e-9)
+        covariance = plane_covariance(ml.normal, ml.centroid, ml.scatter, ml.num_points, rss)
+        np.testing.assert_allclose(covariance, ml.covariance, rtol=1e-6)
     rms_ls, rms_ml = np.sqrt(np.mean(np.square(errors_ls))), np.sqrt(np.mean(np.square(errors_ml)))
     assert np.max(np.abs(errors_ls)) > 0.003 and np.max(np.abs(errors_ml)) < 0.002
     assert rms_ml < 0.4 * rms_ls

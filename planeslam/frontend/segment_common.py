@@ -159,6 +159,7 @@ def build_plane(
         if step > 0 and _rounding_could_bias(xyz, normal, d, centroid, covariance, step):
             try:
                 normal, d, covariance = _quantised_refit(xyz, count, centroid, scatter, step)
+                centroid, scatter = _moments_on_plane(count, centroid, scatter, normal, d)
             except GeometryError as exc:
                 log.debug("plane %d keeps its least-squares fit: %s", plane_id, exc)
         outline = _outline(
@@ -213,6 +214,22 @@ def _quantised_refit(
         float(fit.normal @ scatter @ fit.normal) + count * float(fit.normal @ centroid + fit.d) ** 2
     )
     return fit.normal, fit.d, plane_covariance(fit.normal, centroid, scatter, count, rss)
+
+
+def _moments_on_plane(
+    count: int, centroid: np.ndarray, scatter: np.ndarray, normal: np.ndarray, d: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Moments of `count` points (centroid (3,), scatter (3, 3)) moved so that they refit to
+    the plane (normal, d): the centroid onto it along the normal, the scatter's spread in
+    the plane kept and along the normal replaced by the squared distances to the plane,
+    cross terms dropped. The plane's covariance is the same from either; merges of moments
+    (the map, segment merges) then start from the refit plane, not from least squares."""
+    along = np.outer(normal, normal)
+    in_plane = np.eye(3) - along
+    offset = float(normal @ centroid) + d
+    moved = centroid - offset * normal
+    off_plane = float(normal @ scatter @ normal) + count * offset * offset
+    return moved, in_plane @ scatter @ in_plane + off_plane * along
 
 
 def _outline(

@@ -27,13 +27,15 @@ class Plane:
     points: np.ndarray = field(repr=False)
     """(K, 3) float64 inlier points [m]."""
     centroid: np.ndarray
-    """(3,) mean of the inliers [m]."""
+    """(3,) mean of the inliers [m] (for a plane fitted for the depth's quantisation, moved
+    onto the plane: see `segment_common`)."""
     covariance: np.ndarray = field(repr=False)
     """(3, 3) covariance of the fit in OrientedPlane3 local coordinates
     (2 tangent-space normal components [rad], then d [m])."""
     scatter: np.ndarray = field(repr=False)
     """(3, 3) sum of outer products of centred inliers [m^2]: with `centroid` and
-    `num_points` these are the sufficient statistics to refit or merge planes."""
+    `num_points` these are the sufficient statistics to refit or merge planes (they refit
+    to this plane, also where it was fitted for the depth's quantisation)."""
     num_points: int
     """Number of inliers."""
     area_m2: float
