@@ -61,11 +61,13 @@ def quantisation_bias_m(depth_m: float, step: float, sigma_steps: float) -> floa
 
 
 def fit_quantised_plane(
-    points: np.ndarray, step: float, max_points: int = 2048
+    points: np.ndarray, step: float, max_points: int = 4096
 ) -> QuantisedPlaneFit:
     """Maximum-likelihood plane of points (K, 3) [m, camera frame, z > 0] whose 1/z is
     rounded to multiples of `step` [1/m]. At most `max_points` evenly spread points are
-    used. Raises GeometryError for fewer than 4 points or a fit that does not converge."""
+    used (with 2,048 some ICL-NUIM walls' likelihood peaked at a spuriously small noise, cm
+    off the fit on all points). Raises GeometryError for fewer than 4 points or a fit that
+    does not converge."""
     if len(points) < 4:
         raise GeometryError(f"a quantised plane fit needs at least 4 points, got {len(points)}")
     if len(points) > max_points:
@@ -105,27 +107,28 @@ def _newton_ascent(
     theta: np.ndarray,
     tolerance: float = 1e-3,
     max_iterations: int = 30,
+    max_step: float = 1.0,
 ) -> np.ndarray:
     """Maximise a smooth function (value, gradient, Hessian) of a few parameters from
-    `theta`: Newton steps where the Hessian is negative definite, else a gradient step of
-    unit length, halved until the value does not decrease; until a step is below
-    `tolerance` in every parameter. (SciPy's trust-region Newton evaluates as often, plus
-    about 2 ms per fit of its own: more than the likelihood costs.) Raises GeometryError
-    when it does not converge."""
+    `theta` by Newton steps, the Hessian's eigenvalues of the wrong sign (where the function
+    is not concave) replaced by a small share of the largest, each step at most `max_step`
+    in every parameter and halved until the value does not decrease; until a step is below
+    `tolerance` in every parameter. SciPy's
+    trust-region Newton evaluates as often, plus about 2 ms per fit of its own: more than
+    the likelihood costs. Raises GeometryError when it does not converge."""
     value, grad, hess = log_likelihood(theta)
     for _ in range(max_iterations):
-        try:
-            np.linalg.cholesky(-hess)
-            step = np.linalg.solve(-hess, grad)
-        except np.linalg.LinAlgError:
-            step = grad / max(float(np.linalg.norm(grad)), 1e-300)
-        for _ in range(30):
+        curvature, axes = np.linalg.eigh(-hess)
+        floor = 1e-3 * max(float(np.abs(curvature).max()), 1e-300)
+        step = axes @ ((axes.T @ grad) / np.maximum(curvature, floor))
+        step *= min(1.0, max_step / max(float(np.abs(step).max()), 1e-300))
+        for _ in range(20):
             trial = log_likelihood(theta + step)
             if trial[0] >= value:
                 break
             step = 0.5 * step
         else:
-            break  # no ascent along the step: at the maximum to rounding
+            break  # no ascent along a millionth of the step: at the maximum to rounding
         theta = theta + step
         value, grad, hess = trial
         if np.max(np.abs(step)) < tolerance:
@@ -142,6 +145,11 @@ def _interval_terms(r: np.ndarray, half: float, sigma: float) -> tuple[np.ndarra
     Evaluated at -|r| (L is even in r; in the lower tail the difference of normal CDFs
     keeps its relative precision), the odd derivatives' signs restored after; beyond
     about 37 sigma, where the CDFs underflow, through their logarithms."""
+    with np.errstate(over="ignore", invalid="ignore"):  # a rejected trial step's NaN
+        return _interval_terms_unchecked(r, half, sigma)
+
+
+def _interval_terms_unchecked(r: np.ndarray, half: float, sigma: float) -> tuple[np.ndarray, ...]:
     sign = np.where(r > 0, -1.0, 1.0)
     ra = -np.abs(r)
     u = (ra + half) / sigma
