@@ -81,6 +81,8 @@ def fit_quantised_plane(
     # Parameters theta = ((beta - beta0) / step (3,), log(sigma / step)): all of order 1.
     scaled = rays * step
     half = 0.5 * step
+    upper = np.triu_indices(3)
+    products = scaled[:, upper[0]] * scaled[:, upper[1]]  # (K, 6): the Gram matrix's terms
 
     def log_likelihood(theta: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
         r = residual - scaled @ theta[:3]
@@ -88,7 +90,8 @@ def fit_quantised_plane(
         # d r / d theta[:3] = -scaled; theta[3] is log sigma itself.
         grad = np.concatenate([-(scaled.T @ g_r), [g_t.sum()]])
         hess = np.empty((4, 4))
-        hess[:3, :3] = (scaled * h_rr[:, None]).T @ scaled
+        hess[upper] = products.T @ h_rr
+        hess[upper[1], upper[0]] = hess[upper]
         hess[:3, 3] = hess[3, :3] = -(scaled.T @ h_rt)
         hess[3, 3] = h_tt.sum()
         return float(ll.sum()), grad, hess
@@ -105,7 +108,7 @@ def fit_quantised_plane(
 def _newton_ascent(
     log_likelihood: Callable[[np.ndarray], tuple[float, np.ndarray, np.ndarray]],
     theta: np.ndarray,
-    tolerance: float = 1e-3,
+    tolerance: float = 1e-2,
     max_iterations: int = 30,
     max_step: float = 1.0,
 ) -> np.ndarray:
