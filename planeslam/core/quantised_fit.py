@@ -116,9 +116,9 @@ def _newton_ascent(
     `theta` by Newton steps, the Hessian's eigenvalues of the wrong sign (where the function
     is not concave) replaced by a small share of the largest, each step at most `max_step`
     in every parameter and halved until the value does not decrease; until a step is below
-    `tolerance` in every parameter. SciPy's
-    trust-region Newton evaluates as often, plus about 2 ms per fit of its own: more than
-    the likelihood costs. Raises GeometryError when it does not converge."""
+    `tolerance` in every parameter. (SciPy's trust-region Newton evaluates as often, plus
+    about 2 ms per fit of its own: more than the likelihood costs.) Raises GeometryError
+    when it does not converge."""
     value, grad, hess = log_likelihood(theta)
     for _ in range(max_iterations):
         curvature, axes = np.linalg.eigh(-hess)
@@ -153,6 +153,7 @@ def _interval_terms(r: np.ndarray, half: float, sigma: float) -> tuple[np.ndarra
 
 
 def _interval_terms_unchecked(r: np.ndarray, half: float, sigma: float) -> tuple[np.ndarray, ...]:
+    """`_interval_terms` without the floating-point guard."""
     sign = np.where(r > 0, -1.0, 1.0)
     ra = -np.abs(r)
     u = (ra + half) / sigma

@@ -12,7 +12,7 @@ tangent basis of `plane_fit.tangent_basis` (= gtsam.Unit3(n).basis()).
 A plane whose least-squares offset the sensor's 1/z rounding could bias by more than
 twice the fit's own offset sigma (far walls where the noise does not dither the rounding) takes
 the maximum-likelihood fit of `core.quantised_fit` instead; its covariance is the same
-formula about the new plane.
+formula about the new plane, and its centroid and scatter are moved to refit to it.
 """
 
 from __future__ import annotations
@@ -158,8 +158,9 @@ def build_plane(
         step = (sensor or DepthNoiseConfig()).inverse_depth_step_per_m
         if step > 0 and _rounding_could_bias(xyz, normal, d, centroid, covariance, step):
             try:
-                normal, d, covariance = _quantised_refit(xyz, count, centroid, scatter, step)
-                centroid, scatter = _moments_on_plane(count, centroid, scatter, normal, d)
+                normal, d, centroid, scatter, covariance = _quantised_refit(
+                    xyz, count, centroid, scatter, step
+                )
             except GeometryError as exc:
                 log.debug("plane %d keeps its least-squares fit: %s", plane_id, exc)
         outline = _outline(
@@ -205,15 +206,16 @@ def _rounding_could_bias(
 
 def _quantised_refit(
     xyz: np.ndarray, count: int, centroid: np.ndarray, scatter: np.ndarray, step: float
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """(normal, d, covariance) of the maximum-likelihood plane of xyz (3, K) under the 1/z
-    rounding `step`, the covariance the least-squares formula about it. Raises
-    GeometryError when the fit does not converge (the caller keeps least squares)."""
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray]:
+    """(normal, d, centroid, scatter, covariance) of the maximum-likelihood plane of xyz
+    (3, K) under the 1/z rounding `step`: its moments moved onto it (`_moments_on_plane`),
+    the covariance the least-squares formula about it. Raises GeometryError when the fit
+    does not converge (the caller keeps least squares)."""
     fit = fit_quantised_plane(xyz.T, step)
-    rss = (
-        float(fit.normal @ scatter @ fit.normal) + count * float(fit.normal @ centroid + fit.d) ** 2
-    )
-    return fit.normal, fit.d, plane_covariance(fit.normal, centroid, scatter, count, rss)
+    centroid, scatter = _moments_on_plane(count, centroid, scatter, fit.normal, fit.d)
+    rss = float(fit.normal @ scatter @ fit.normal)
+    covariance = plane_covariance(fit.normal, centroid, scatter, count, rss)
+    return fit.normal, fit.d, centroid, scatter, covariance
 
 
 def _moments_on_plane(
