@@ -45,12 +45,17 @@ class QuantisedPlaneFit:
 def inverse_depth_residual_steps(
     points: np.ndarray, normal: np.ndarray, d: float, step: float
 ) -> float:
-    """Noise of 1/z about the plane (n, d) before a rounding of `step` [1/m], in steps:
-    sqrt(max(mean squared 1/z residual - step^2 / 12, 0)) / step (Sheppard's correction).
-    points: (K, 3) camera frame [m], z > 0. Includes the plane's misfit: an overestimate."""
+    """Noise of 1/z about the plane (n, d) before a rounding of `step` [1/m], in steps
+    (`_noise_steps`). points: (K, 3) camera frame [m], z > 0. Includes the plane's misfit:
+    an overestimate."""
     z = points[:, 2]
-    residual = 1.0 / z + (points @ normal) / (z * d)
-    variance = float(residual @ residual) / len(z) - step * step / 12.0
+    return _noise_steps(1.0 / z + (points @ normal) / (z * d), step)
+
+
+def _noise_steps(residual: np.ndarray, step: float) -> float:
+    """Noise before a rounding of `step` behind 1/z residuals (K,) [1/m], in steps:
+    sqrt(max(mean squared residual - step^2 / 12, 0)) / step (Sheppard's correction)."""
+    variance = float(residual @ residual) / len(residual) - step * step / 12.0
     return float(np.sqrt(max(variance, 0.0))) / step
 
 
@@ -77,7 +82,6 @@ def fit_quantised_plane(
     w = 1.0 / z
     beta0, *_ = np.linalg.lstsq(rays, w, rcond=None)
     residual = w - rays @ beta0
-    sigma0 = np.sqrt(max(float(residual @ residual) / len(w) - step * step / 12.0, 0.0))
     # Parameters theta = ((beta - beta0) / step (3,), log(sigma / step)): all of order 1.
     scaled = rays * step
     half = 0.5 * step
@@ -96,7 +100,7 @@ def fit_quantised_plane(
         hess[3, 3] = h_tt.sum()
         return float(ll.sum()), grad, hess
 
-    theta = np.array([0.0, 0.0, 0.0, np.log(max(sigma0, 0.1 * step) / step)])
+    theta = np.array([0.0, 0.0, 0.0, np.log(max(_noise_steps(residual, step), 0.1))])
     theta = _newton_ascent(log_likelihood, theta)
     beta = beta0 + step * theta[:3]
     norm = float(np.linalg.norm(beta))
@@ -141,6 +145,7 @@ def _newton_ascent(
     return theta
 
 
+@np.errstate(over="ignore", invalid="ignore")  # a trial step the line search rejects
 def _interval_terms(r: np.ndarray, half: float, sigma: float) -> tuple[np.ndarray, ...]:
     """Per-point log P(r - half < e < r + half), e ~ N(0, sigma^2), and its derivatives:
     (log L, d/dr, d/dlog sigma, d2/dr2, d2/dr dlog sigma, d2/dlog sigma2), each (K,).
@@ -148,12 +153,6 @@ def _interval_terms(r: np.ndarray, half: float, sigma: float) -> tuple[np.ndarra
     Evaluated at -|r| (L is even in r; in the lower tail the difference of normal CDFs
     keeps its relative precision), the odd derivatives' signs restored after; beyond
     about 37 sigma, where the CDFs underflow, through their logarithms."""
-    with np.errstate(over="ignore", invalid="ignore"):  # a rejected trial step's NaN
-        return _interval_terms_unchecked(r, half, sigma)
-
-
-def _interval_terms_unchecked(r: np.ndarray, half: float, sigma: float) -> tuple[np.ndarray, ...]:
-    """`_interval_terms` without the floating-point guard."""
     sign = np.where(r > 0, -1.0, 1.0)
     ra = -np.abs(r)
     u = (ra + half) / sigma
