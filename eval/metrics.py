@@ -14,6 +14,8 @@ import numpy as np
 from planeslam.core.errors import EvaluationError
 from planeslam.core.resources import peak_rss_mb
 
+from .glitches import PoseGlitches, find_pose_glitches
+
 if TYPE_CHECKING:
     from planeslam.slam import SLAM, RunSummary
 
@@ -74,6 +76,9 @@ class RunMetrics:
     (loop constraints against older keyframes, `planeslam.tracking.loops`) and, when
     loops are on, loop_search_ms_median (per keyframe, on the search's own thread; the
     'loops' stage is what tracking spent on them)."""
+    pose_glitches: dict[str, Any] = field(default_factory=dict)
+    """Poses that jump away from the frames around them and back (`glitches.PoseGlitches`:
+    count, judged, timestamps and the thresholds); empty for methods without a trajectory."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -115,6 +120,7 @@ def run_metrics(
     backend_peak_rss_mb: float = 0.0,
     map_counts: Mapping[str, int] | None = None,
     tracked_fraction: float | None = None,
+    pose_glitches: PoseGlitches | None = None,
 ) -> RunMetrics:
     """Build RunMetrics from a run's counts and timings.
 
@@ -150,13 +156,14 @@ def run_metrics(
         map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
         final_poses=dict(final_poses or {}),
         backend=dict(backend or {}),
+        pose_glitches={} if pose_glitches is None else pose_glitches.to_dict(),
     )
 
 
 def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
     """RunMetrics of a `planeslam.slam.SLAM` run: speed and paths from its `RunSummary`
     (None for an interrupted run: frame count only), the map's bytes by part against the
-    fused and the merged point clouds of the processed frames."""
+    fused and the merged point clouds of the processed frames, the trajectory's glitches."""
     breakdown = slam.map.memory_bytes()
     result = slam.backend_result
     common: dict[str, Any] = dict(
@@ -173,6 +180,7 @@ def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
         backend_peak_rss_mb=result.peak_rss_mb if result is not None else 0.0,
         final_poses=slam.final_poses,
         tracked_fraction=slam.tracked_frames / slam.frames if slam.frames else None,
+        pose_glitches=find_pose_glitches(slam.trajectory()),
     )
     if summary is None:
         return run_metrics(frames=slam.frames, seconds=0.0, **common)

@@ -84,13 +84,29 @@ def plot_trajectories(evaluation: TrajectoryEvaluation, path: str | Path) -> Pat
     return _save(fig, path)
 
 
-def plot_ate_over_time(evaluation: TrajectoryEvaluation, path: str | Path) -> Path:
-    """Translation error after alignment [m] against seconds from the first pose, as a PNG."""
+def plot_ate_over_time(
+    evaluation: TrajectoryEvaluation,
+    path: str | Path,
+    glitch_timestamps: np.ndarray | None = None,
+) -> Path:
+    """Translation error after alignment [m] against seconds from the first pose, as a PNG;
+    the poses at `glitch_timestamps` (G,) [s] (`glitches.find_pose_glitches`) marked."""
     path = Path(path)
     seconds = evaluation.timestamps - evaluation.timestamps[0]
     fig = Figure(figsize=(9, 4), layout="constrained")
     ax = fig.subplots()
     ax.plot(seconds, evaluation.ate_errors_m, color="tab:red", linewidth=1.2, label="error")
+    if glitch_timestamps is not None and len(glitch_timestamps) and len(seconds):
+        rows = np.abs(evaluation.timestamps[None, :] - np.asarray(glitch_timestamps)[:, None])
+        nearest = np.argmin(rows, axis=1)
+        ax.scatter(
+            seconds[nearest],
+            evaluation.ate_errors_m[nearest],
+            marker="x",
+            color="k",
+            zorder=3,
+            label=f"pose glitches ({len(glitch_timestamps)}; found without the truth)",
+        )
     ax.axhline(
         evaluation.ate_rmse_m,
         color="0.3",

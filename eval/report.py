@@ -15,12 +15,15 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from planeslam import __version__
 from planeslam.core.errors import EvaluationError
 from planeslam.core.safe_files import write_text_atomic
 from planeslam.io.trajectory import read_tum
 from planeslam.mapping.world_map import Map
 
+from .glitches import find_pose_glitches
 from .object_sizes import object_size_errors_from_files, read_json
 from .plots import plot_ate_over_time, plot_frame_timeline, plot_map_top_view, plot_trajectories
 from .run_info import RUN_JSON, RunInfo, read_run_info
@@ -86,8 +89,14 @@ _UNITS = (  # unit word of a key (its last one, or 'ms' / 'mb' anywhere) -> unit
 )
 
 
-def write_evaluation(evaluation: TrajectoryEvaluation, out_dir: str | Path) -> dict[str, Path]:
-    """Write eval.json, trajectory.png and ate_over_time.png into `out_dir` (created).
+def write_evaluation(
+    evaluation: TrajectoryEvaluation,
+    out_dir: str | Path,
+    glitch_timestamps: np.ndarray | None = None,
+) -> dict[str, Path]:
+    """Write eval.json, trajectory.png and ate_over_time.png (with the poses at
+    `glitch_timestamps` (G,) [s] marked, `glitches.find_pose_glitches`) into `out_dir`
+    (created).
 
     Returns {"eval": ..., "trajectory_plot": ..., "ate_plot": ...} paths.
     """
@@ -98,7 +107,7 @@ def write_evaluation(evaluation: TrajectoryEvaluation, out_dir: str | Path) -> d
     paths = {
         "eval": eval_path,
         "trajectory_plot": plot_trajectories(evaluation, out / TRAJECTORY_PNG),
-        "ate_plot": plot_ate_over_time(evaluation, out / ATE_PNG),
+        "ate_plot": plot_ate_over_time(evaluation, out / ATE_PNG, glitch_timestamps),
     }
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return paths
@@ -484,9 +493,10 @@ def evaluate_to_folder(
     Evaluates the TUM files, adds object size errors when a truth.json (default: next to
     GROUNDTRUTH) and a map JSON with an 'objects' list (default: map.json next to ESTIMATE)
     both exist, then writes eval.json (with `tracked_fraction` when given: the share of
-    the run's frames in ESTIMATE), the plots and report.html into `out_dir` (default:
-    the estimate's folder). A truth.json found there (not given) that cannot be used gives
-    a warning in `EvaluationRun.warnings`, not an error.
+    the run's frames in ESTIMATE), the plots (ESTIMATE's pose glitches marked) and
+    report.html into `out_dir` (default: the estimate's folder). A truth.json found there
+    (not given) that cannot be used gives a warning in `EvaluationRun.warnings`, not an
+    error.
     """
     gt_path, est_path = Path(groundtruth), Path(estimate)
     out = Path(out_dir) if out_dir is not None else est_path.parent
@@ -508,6 +518,7 @@ def evaluate_to_folder(
     elif truth_json is not None or map_json is not None:
         missing = truth if not truth.is_file() else objects
         raise EvaluationError(f"{missing}: not found (object sizes need truth.json and a map)")
-    paths = write_evaluation(evaluation, out)
+    glitches = find_pose_glitches(read_tum(est_path))
+    paths = write_evaluation(evaluation, out, glitches.timestamps)
     paths["report"] = write_report(out, groundtruth=gt_path)
     return EvaluationRun(evaluation=evaluation, paths=paths, warnings=tuple(warnings))

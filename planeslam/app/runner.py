@@ -117,6 +117,15 @@ class RunResult:
                 else ""
             )
             lines.append(f"ATE RMSE {ev.ate_rmse_m:.4f} m, {rpe} over {ev.pairs} poses{tracked}")
+        glitches = m.pose_glitches
+        if glitches.get("count"):
+            shown = ", ".join(f"{t:.2f}" for t in glitches["timestamps"][:8])
+            more = " ..." if glitches["count"] > 8 else ""
+            lines.append(
+                f"pose glitches: {glitches['count']} of {glitches['judged']} poses jump over "
+                f"{100 * glitches['min_jump_m']:.0f} cm / {glitches['min_jump_deg']:.0f} deg "
+                f"off the frames around them and back (t = {shown}{more} s)"
+            )
         if s.skipped_frames:
             lines.append(f"{s.skipped_frames} frames skipped: their images could not be read")
         lines.extend(f"warning: {w}" for w in self.warnings)
