@@ -194,6 +194,10 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(
     [(metres, degrees)] = result.revisit_offsets  # the second pass places each image again
     assert metres < 0.005 and degrees < 0.5
     assert "the same image's pose against its first-pass pose" in result.to_text()
+    # views 18 cm apart replayed at 30 Hz: where the replay turns back, the detector sees a
+    # jump off the path and back (on 7-Scenes a turn moves a frame's 1-3 cm)
+    assert len(result.glitches_per_pass) == 2
+    assert "pose glitches per pass (found without the truth)" in result.to_text()
 
 
 @pytest.mark.integration
@@ -269,6 +273,20 @@ def test_revisit_offsets_compare_each_image_with_its_first_pass_pose() -> None:
     assert m2 == pytest.approx(0.01) and deg2 == pytest.approx(2.0)
     assert m3 == pytest.approx(0.03) and deg3 == pytest.approx(0.0, abs=1e-6)
     assert revisit_offsets(estimate, timestamps[:4], frames_per_pass=3) == []  # one pass
+
+
+def test_glitches_are_counted_by_pass() -> None:
+    """Three passes of 20 frames at 30 Hz along a line; one pose of the second pass jumps
+    8 cm off and back."""
+    from planeslam.app.bench_long import _glitches_per_pass
+
+    order = pass_order(21, 3)
+    poses = np.tile(np.eye(4), (len(order), 1, 1))
+    poses[:, 0, 3] = 0.01 * np.asarray(order)  # 1 cm per frame, back and forth
+    poses[30, 1, 3] += 0.08
+    timestamps = np.arange(len(order)) / 30.0
+    estimate = Trajectory(timestamps, poses)
+    assert _glitches_per_pass(estimate, timestamps, frames_per_pass=20) == [0, 1, 0]
 
 
 def confident(plane):

@@ -29,6 +29,7 @@ from planeslam.config import ConfigLayer, resolve_config
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.core.geometry import pose_distances
 from planeslam.core.resources import rss_mb
+from planeslam.eval.glitches import find_pose_glitches
 from planeslam.eval.trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, format_tum_row, read_tum
@@ -133,6 +134,8 @@ class LongRunResult:
     revisit_offsets: list[tuple[float, float]] = field(default_factory=list)
     """Per pass after the first: median translation [m] and rotation [deg] between a frame's
     estimated pose and the first pass's estimate of the same image (`revisit_offsets`)."""
+    glitches_per_pass: list[int] = field(default_factory=list)
+    """Pose glitches (`planeslam.eval.glitches`) in each pass."""
 
     @property
     def fps(self) -> float:
@@ -174,6 +177,9 @@ class LongRunResult:
                 "the same image's pose against its first-pass pose, median per later pass: "
                 f"{metres} cm, {degrees} deg"
             )
+        if self.glitches_per_pass:
+            counts = " / ".join(str(n) for n in self.glitches_per_pass)
+            lines.append(f"pose glitches per pass (found without the truth): {counts}")
         return "\n".join(lines)
 
 
@@ -284,19 +290,34 @@ def run_long(
         ate_per_pass_m=_ate_per_pass(evaluation, dataset.timestamps, frames_per_pass),
         seed=seed,
         revisit_offsets=revisit_offsets(estimate, dataset.timestamps, frames_per_pass),
+        glitches_per_pass=_glitches_per_pass(estimate, dataset.timestamps, frames_per_pass),
     )
+
+
+def _pass_of(stamps: np.ndarray, timestamps: np.ndarray, frames_per_pass: int) -> np.ndarray:
+    """(M,) pass of each of `stamps` (M,) [s], frames of the replay's `timestamps` (N,) [s]:
+    frame k is in pass max(0, (k - 1) // frames_per_pass) (`pass_order`: the first pass has
+    one more frame)."""
+    k = np.searchsorted(np.asarray(timestamps), np.asarray(stamps) - 1e-6)
+    return np.maximum(0, (k - 1) // frames_per_pass)
 
 
 def _ate_per_pass(
     evaluation: TrajectoryEvaluation, timestamps: np.ndarray, frames_per_pass: int
 ) -> list[float]:
-    """RMSE [m] of `evaluation`'s aligned errors grouped by pass: frame k (of the replay's
-    `timestamps` (N,) [s]) is in pass max(0, (k - 1) // frames_per_pass) (`pass_order`:
-    the first pass has one more frame)."""
-    k = np.searchsorted(np.asarray(timestamps), evaluation.timestamps - 1e-6)
-    passes = np.maximum(0, (k - 1) // frames_per_pass)
+    """RMSE [m] of `evaluation`'s aligned errors grouped by pass (`_pass_of`)."""
+    passes = _pass_of(evaluation.timestamps, timestamps, frames_per_pass)
     errors = np.asarray(evaluation.ate_errors_m)
     return [float(np.sqrt(np.mean(errors[passes == p] ** 2))) for p in np.unique(passes)]
+
+
+def _glitches_per_pass(
+    estimate: Trajectory, timestamps: np.ndarray, frames_per_pass: int
+) -> list[int]:
+    """Pose glitches (`find_pose_glitches`) of `estimate` counted by pass (`_pass_of`)."""
+    passes = (len(timestamps) - 1) // frames_per_pass if frames_per_pass else 0
+    found = _pass_of(find_pose_glitches(estimate).timestamps, timestamps, frames_per_pass)
+    return [int(np.count_nonzero(found == p)) for p in range(max(passes, 1))]
 
 
 def revisit_offsets(
