@@ -13,8 +13,7 @@ import numpy as np
 
 from planeslam.core.errors import EvaluationError
 from planeslam.core.resources import peak_rss_mb
-
-from .glitches import PoseGlitches, find_pose_glitches
+from planeslam.tracking.glitches import PoseGlitches
 
 if TYPE_CHECKING:
     from planeslam.slam import SLAM, RunSummary
@@ -77,8 +76,11 @@ class RunMetrics:
     loops are on, loop_search_ms_median (per keyframe, on the search's own thread; the
     'loops' stage is what tracking spent on them)."""
     pose_glitches: dict[str, Any] = field(default_factory=dict)
-    """Poses that jump away from the frames around them and back (`glitches.PoseGlitches`:
-    count, judged, timestamps and the thresholds); empty for methods without a trajectory."""
+    """Poses of trajectory.txt that jump away from the frames around them and back
+    (`planeslam.tracking.glitches.PoseGlitches`: count, judged, timestamps and the
+    thresholds) and, for a SLAM run, those its end settled (`tracking.settle_glitches`:
+    found, found_timestamps, re_estimated, left_out, the latter counted as lost); empty for
+    methods without a trajectory."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -121,6 +123,7 @@ def run_metrics(
     map_counts: Mapping[str, int] | None = None,
     tracked_fraction: float | None = None,
     pose_glitches: PoseGlitches | None = None,
+    settled_glitches: Mapping[str, Any] | None = None,
 ) -> RunMetrics:
     """Build RunMetrics from a run's counts and timings.
 
@@ -156,7 +159,10 @@ def run_metrics(
         map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
         final_poses=dict(final_poses or {}),
         backend=dict(backend or {}),
-        pose_glitches={} if pose_glitches is None else pose_glitches.to_dict(),
+        pose_glitches={
+            **({} if pose_glitches is None else pose_glitches.to_dict()),
+            **(settled_glitches or {}),
+        },
     )
 
 
@@ -180,7 +186,8 @@ def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
         backend_peak_rss_mb=result.peak_rss_mb if result is not None else 0.0,
         final_poses=slam.final_poses,
         tracked_fraction=slam.tracked_frames / slam.frames if slam.frames else None,
-        pose_glitches=find_pose_glitches(slam.trajectory()),
+        pose_glitches=slam.pose_glitches(),
+        settled_glitches=slam.settled_glitches,
     )
     if summary is None:
         return run_metrics(frames=slam.frames, seconds=0.0, **common)

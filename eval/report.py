@@ -22,8 +22,8 @@ from planeslam.core.errors import EvaluationError
 from planeslam.core.safe_files import write_text_atomic
 from planeslam.io.trajectory import read_tum
 from planeslam.mapping.world_map import Map
+from planeslam.tracking.glitches import find_pose_glitches
 
-from .glitches import find_pose_glitches
 from .object_sizes import object_size_errors_from_files, read_json
 from .plots import plot_ate_over_time, plot_frame_timeline, plot_map_top_view, plot_trajectories
 from .run_info import RUN_JSON, RunInfo, read_run_info

@@ -37,7 +37,7 @@ import dataclasses
 import logging
 import time
 import weakref
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from typing import Any
@@ -68,6 +68,7 @@ from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
 from planeslam.tracking.estimator import PoseConstraints
 from planeslam.tracking.final_poses import FrameTerms, final_poses
+from planeslam.tracking.glitches import PoseGlitches, find_pose_glitches, reestimate_glitches
 from planeslam.tracking.keypoints import Keypoints
 from planeslam.tracking.loops import LoopOutcome, LoopSearch
 from planeslam.tracking.odometry import RgbdOdometry
@@ -214,6 +215,10 @@ class SLAM:
         self.final_poses: dict[str, float] = {}
         """After `finish`: frames between keyframes re-estimated against the final map
         ('reestimated'), left at their anchored pose ('kept') and the wall-clock 'ms'."""
+        self.settled_glitches: dict[str, Any] = {}
+        """After `finish` (`tracking.settle_glitches`): the final trajectory's pose glitches
+        ('found', their 'found_timestamps' [s]), those re-estimated from their neighbours'
+        path ('re_estimated') and those left out as lost ('left_out')."""
         self._last_keyframe: int | None = None
         self._velocity = np.eye(4)
         """Last motion T_prev_cur of tracked frames (constant-velocity prediction)."""
@@ -653,20 +658,22 @@ class SLAM:
             self.tracker.move_keyframe(index, T_world_cam)  # keypoints follow the final map
         if not self.localize:
             self.map.apply_estimates(result.planes, result.corners)
-        self._reestimate_frames()
+        terms, self._frame_terms = self._frame_terms, {}
+        self._reestimate_frames(terms)
+        self._settle_glitches(terms)
         self.backend_result = result
         return 1e3 * (time.perf_counter() - start)
 
-    def _reestimate_frames(self) -> None:
+    def _reestimate_frames(self, terms: Mapping[int, FrameTerms]) -> None:
         """Each tracked frame between keyframes re-estimated against the final map from the
-        planes and corners it was tracked with (`tracking.final_poses`); a frame the map
-        does not fix keeps its pose anchored on its keyframe."""
+        planes and corners it was tracked with (`terms`, by frame; `tracking.final_poses`);
+        a frame the map does not fix keeps its pose anchored on its keyframe."""
         if not self.config.tracking.final_poses:
             return
         start = time.perf_counter()
         frames = {
-            k: (terms, self._keyframe_final[self._anchor[k]] @ self._T_anchor_cam[k])
-            for k, terms in self._frame_terms.items()
+            k: (frame_terms, self._keyframe_final[self._anchor[k]] @ self._T_anchor_cam[k])
+            for k, frame_terms in terms.items()
         }
         cfg = self.config.tracking
         found = final_poses(
@@ -679,8 +686,7 @@ class SLAM:
             cfg.final_max_step_deg,
         )
         for k, T_world_cam in found.items():
-            self._T_anchor_cam[k] = invert_pose(self._keyframe_final[self._anchor[k]]) @ T_world_cam
-        self._frame_terms = {}
+            self._set_final_pose(k, T_world_cam)
         self.final_poses = {
             "reestimated": len(found),
             "kept": len(frames) - len(found),
@@ -693,7 +699,67 @@ class SLAM:
             self.final_poses["ms"],
         )
 
+    def _set_final_pose(self, index: int, T_world_cam: np.ndarray) -> None:
+        """Frame `index` takes T_world_cam (4, 4) in the final map, kept relative to its
+        anchor keyframe's final pose."""
+        self._T_anchor_cam[index] = invert_pose(self._keyframe_final[self._anchor[index]]) @ (
+            T_world_cam
+        )
+
+    def _settle_glitches(self, terms: Mapping[int, FrameTerms]) -> None:
+        """The final trajectory's pose glitches (`tracking.settle_glitches`): each frame with
+        `terms` (by frame) that they fix from the pose its good neighbours put it at takes
+        that estimate; the others are left out as lost."""
+        cfg = self.config.tracking
+        if not cfg.settle_glitches:
+            return
+        trajectory = self.trajectory()
+        found = self.pose_glitches(trajectory)
+        frames = [k for k, tracked in enumerate(self._tracked) if tracked]  # row -> frame
+        poses = reestimate_glitches(
+            trajectory,
+            found.rows.tolist(),
+            {int(r): terms[frames[r]] for r in found.rows if frames[r] in terms},
+            self.map_view(),
+            self.tracker.refine_settings,
+            self.tracker.thresholds,
+            cfg.sigma_point_m,
+            found.max_span_s,
+            cfg.fast_max_jump_m,
+            cfg.fast_max_jump_deg,
+        )
+        for row in found.rows.tolist():
+            if row in poses:
+                self._set_final_pose(frames[row], poses[row])
+            else:
+                self._tracked[frames[row]] = False
+        self.settled_glitches = {
+            "found": len(found),
+            "found_timestamps": [round(float(t), 6) for t in found.timestamps],
+            "re_estimated": len(poses),
+            "left_out": len(found) - len(poses),
+        }
+        if len(found):
+            logger.info(
+                "final trajectory: %d pose glitches, %d re-estimated, %d left out",
+                len(found),
+                len(poses),
+                len(found) - len(poses),
+            )
+
     # -------------------------------------------------------------------------- results
+
+    def pose_glitches(self, trajectory: Trajectory | None = None) -> PoseGlitches:
+        """The glitches of `trajectory` (default: this run's) under tracking's jump limits:
+        poses beyond `fast_max_jump_*` off the path of the frames within 2 `fast_max_gap_s`
+        around them (`tracking.glitches.find_pose_glitches`)."""
+        cfg = self.config.tracking
+        return find_pose_glitches(
+            self.trajectory() if trajectory is None else trajectory,
+            2.0 * cfg.fast_max_gap_s,
+            cfg.fast_max_jump_m,
+            cfg.fast_max_jump_deg,
+        )
 
     @property
     def tracked_frames(self) -> int:

@@ -29,12 +29,11 @@ from planeslam.config import ConfigLayer, resolve_config
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.core.geometry import pose_distances
 from planeslam.core.resources import rss_mb
-from planeslam.eval.glitches import find_pose_glitches
 from planeslam.eval.trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, format_tum_row, read_tum
 from planeslam.io.tum_text import row_error, tum_rows
-from planeslam.slam import FrameResult, run_frames, slam_for_dataset
+from planeslam.slam import SLAM, FrameResult, run_frames, slam_for_dataset
 
 log = logging.getLogger(__name__)
 
@@ -135,7 +134,8 @@ class LongRunResult:
     """Per pass after the first: median translation [m] and rotation [deg] between a frame's
     estimated pose and the first pass's estimate of the same image (`revisit_offsets`)."""
     glitches_per_pass: list[int] = field(default_factory=list)
-    """Pose glitches (`planeslam.eval.glitches`) in each pass."""
+    """Pose glitches (`planeslam.tracking.glitches`) in each pass, as the run's end found
+    them (`tracking.settle_glitches`)."""
 
     @property
     def fps(self) -> float:
@@ -179,7 +179,7 @@ class LongRunResult:
             )
         if self.glitches_per_pass:
             counts = " / ".join(str(n) for n in self.glitches_per_pass)
-            lines.append(f"pose glitches per pass (found without the truth): {counts}")
+            lines.append(f"pose glitches found per pass (without the truth): {counts}")
         return "\n".join(lines)
 
 
@@ -290,7 +290,7 @@ def run_long(
         ate_per_pass_m=_ate_per_pass(evaluation, dataset.timestamps, frames_per_pass),
         seed=seed,
         revisit_offsets=revisit_offsets(estimate, dataset.timestamps, frames_per_pass),
-        glitches_per_pass=_glitches_per_pass(estimate, dataset.timestamps, frames_per_pass),
+        glitches_per_pass=_glitches_per_pass(slam, dataset.timestamps, frames_per_pass),
     )
 
 
@@ -311,12 +311,14 @@ def _ate_per_pass(
     return [float(np.sqrt(np.mean(errors[passes == p] ** 2))) for p in np.unique(passes)]
 
 
-def _glitches_per_pass(
-    estimate: Trajectory, timestamps: np.ndarray, frames_per_pass: int
-) -> list[int]:
-    """Pose glitches (`find_pose_glitches`) of `estimate` counted by pass (`_pass_of`)."""
+def _glitches_per_pass(slam: SLAM, timestamps: np.ndarray, frames_per_pass: int) -> list[int]:
+    """The finished `slam`'s pose glitches counted by pass (`_pass_of`): those its end found
+    (`tracking.settle_glitches`), or with that off those of its trajectory."""
     passes = (len(timestamps) - 1) // frames_per_pass if frames_per_pass else 0
-    found = _pass_of(find_pose_glitches(estimate).timestamps, timestamps, frames_per_pass)
+    stamps = slam.settled_glitches.get("found_timestamps")
+    if stamps is None:
+        stamps = slam.pose_glitches().timestamps
+    found = _pass_of(np.asarray(stamps, dtype=np.float64), timestamps, frames_per_pass)
     return [int(np.count_nonzero(found == p)) for p in range(max(passes, 1))]
 
 

@@ -1,4 +1,5 @@
-"""Pose glitches: poses that jump away from the frames around them and back.
+"""Pose glitches: poses that jump away from the frames around them and back, and how a
+run settles them.
 
 At video rate a hand-held or robot camera moves smoothly: over a fifth of a second its
 path departs from the straight line (and its orientation from the slerp) between the poses
@@ -9,16 +10,27 @@ poses together, is compared with the interpolations between the neighbours one a
 frames before and after it (the smallest departure counts, so a glitch of one or two
 frames shows, and the frames next to it do not); poses without such neighbours within
 `max_span_s` (the ends, sub-sampled sequences, gaps of lost frames) are not judged.
+
+`reestimate_glitches` settles them at the end of a run (`SLAM.finish`,
+`tracking.settle_glitches`): a glitched frame between keyframes is estimated again from the
+planes and corners it was tracked with, against the final map, starting from the pose its
+nearest good neighbours put it at (`interpolated_pose`), and keeps that estimate when it
+stays within the glitch limits of that pose; the others are left out of the trajectory,
+as lost frames are.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from planeslam.io.trajectory import Trajectory
+from planeslam.tracking.estimator import ConstraintThresholds, EstimatorSettings
+from planeslam.tracking.final_poses import FrameTerms, final_poses
+from planeslam.tracking.views import MapView
 
 _ENDS = ((1, 1), (1, 2), (2, 1), (2, 2))
 """(frames before, frames after) a run of poses of the neighbours it is interpolated from."""
@@ -33,6 +45,8 @@ class PoseGlitches:
 
     timestamps: np.ndarray
     """(G,) timestamps [s] of the poses that jump."""
+    rows: np.ndarray = field(repr=False)
+    """(G,) their indices in the trajectory."""
     judged: int
     """Poses with neighbours on both sides within `max_span_s`."""
     max_span_s: float
@@ -101,6 +115,7 @@ def find_pose_glitches(
                 glitch[k:] |= departs[: n - k]
     return PoseGlitches(
         timestamps=stamps[glitch],
+        rows=np.flatnonzero(glitch),
         judged=int(np.count_nonzero(judged)),
         max_span_s=float(max_span_s),
         min_jump_m=float(min_jump_m),
@@ -108,4 +123,51 @@ def find_pose_glitches(
     )
 
 
-__all__ = ["PoseGlitches", "find_pose_glitches"]
+def interpolated_pose(T_a: np.ndarray, T_b: np.ndarray, share: float) -> np.ndarray:
+    """(4, 4) pose `share` in [0, 1] of the way from T_a to T_b (4, 4): the position on the
+    straight line, the rotation on the slerp."""
+    from scipy.spatial.transform import Rotation
+
+    turn = (Rotation.from_matrix(T_a[:3, :3]).inv() * Rotation.from_matrix(T_b[:3, :3])).as_rotvec()
+    T = np.eye(4)
+    T[:3, :3] = T_a[:3, :3] @ Rotation.from_rotvec(share * turn).as_matrix()
+    T[:3, 3] = (1.0 - share) * T_a[:3, 3] + share * T_b[:3, 3]
+    return T
+
+
+def reestimate_glitches(
+    trajectory: Trajectory,
+    glitched_rows: Sequence[int],
+    terms: Mapping[int, FrameTerms],
+    view: MapView,
+    settings: EstimatorSettings,
+    thresholds: ConstraintThresholds,
+    sigma_point_m: float,
+    max_span_s: float,
+    max_step_m: float,
+    max_step_deg: float,
+) -> dict[int, np.ndarray]:
+    """{row: T_world_cam (4, 4)} for the glitched rows of `trajectory` that `terms` ({row:
+    the planes and corners it was tracked with}) fix against the final map `view` (world
+    frame) from the pose its nearest unglitched neighbours before and after (at most
+    `max_span_s` [s] apart) interpolate, within `max_step_m` [m] and `max_step_deg` [deg]
+    of it (`final_poses.final_poses`, with `settings`, `thresholds` and the corner noise
+    `sigma_point_m` [m]). The rows left out have no pose that their own terms support."""
+    stamps, poses = trajectory.timestamps, trajectory.T_world_cam
+    bad = set(int(r) for r in glitched_rows)
+    good = np.array([r for r in range(len(stamps)) if r not in bad], dtype=np.int64)
+    starts: dict[int, tuple[FrameTerms, np.ndarray]] = {}
+    for row in sorted(bad):
+        after = int(np.searchsorted(good, row))
+        if row not in terms or after == 0 or after == len(good):
+            continue
+        a, b = int(good[after - 1]), int(good[after])
+        span = float(stamps[b] - stamps[a])
+        if not 0 < span <= max_span_s:
+            continue
+        share = float(stamps[row] - stamps[a]) / span
+        starts[row] = (terms[row], interpolated_pose(poses[a], poses[b], share))
+    return final_poses(starts, view, settings, thresholds, sigma_point_m, max_step_m, max_step_deg)
+
+
+__all__ = ["PoseGlitches", "find_pose_glitches", "interpolated_pose", "reestimate_glitches"]
