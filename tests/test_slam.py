@@ -267,8 +267,8 @@ def test_a_revisit_follows_the_keyframe_made_at_that_place(loop: Path) -> None:
     order = list(range(16)) + list(range(14, -1, -1))
     results = []
     for k, i in enumerate(order):
-        frame = dataset[i]
-        results.append(slam.process(frame.depth_m, k / 30.0, frame.rgb))
+        frame = dataset[i]  # views 6 deg apart: 2 a second (a turn at 30 Hz would be a glitch)
+        results.append(slam.process(frame.depth_m, k / 2.0, frame.rgb))
     slam.finish()
     first_visit = {i: k for k, i in reversed(list(enumerate(order)))}
     assert all(r.keyframe and r.anchor == r.index for r in results[:16])
