@@ -17,7 +17,14 @@ from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import PoseConstraints
 from planeslam.tracking.relocalise import primitive_hypotheses
-from planeslam.tracking.tracker import FrameView, JointSolve, MapView, Tracker, is_rival
+from planeslam.tracking.tracker import (
+    FrameView,
+    JointSolve,
+    MapView,
+    Tracker,
+    _LazyKeypoints,
+    is_rival,
+)
 
 # A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
 # visible corner is at (1.0, 0.8, 0.2); every normal faces the camera side (+x, +y, +z),
@@ -484,3 +491,28 @@ def test_a_close_frame_near_the_last_pose_takes_its_plane_pose(rng: np.random.Ge
     assert tracker._track(
         frame, map_view(), T_pred, None, None, frame_gap_s=0.5, T_last=T_last
     ).reason
+
+
+def test_a_plane_pose_with_a_weakly_fixed_translation_needs_the_keypoints(
+    rng: np.random.Generator,
+) -> None:
+    """Floor, box top, box side and a wall whose weight is 2 % of theirs: the wall's axis
+    holds 0.7 % of the planes' translation information. With a keypoint source the plane
+    pose waits for the keypoints' agreement (here none are found), so the robust estimate
+    decides and says why; without a keypoint source, or with the check off, the fast path
+    takes it at once."""
+    T = camera_pose()
+    frame = dataclasses.replace(
+        observe(T, [0, 3, 4, 2], rng), weights=np.array([1.0, 1.0, 1.0, 0.02])
+    )
+    no_keypoints = _LazyKeypoints(lambda: None)
+    weak = Tracker(TrackingConfig())._track(
+        frame, map_view(), T, None, None, no_keypoints, frame_gap_s=0.033
+    )
+    assert "weakly fixed translation" in weak.reason
+    assert_pose_close(weak.T_world_cam, T, 1e-6, 1e-4)
+    plain = Tracker(TrackingConfig())._track(frame, map_view(), T, None, None, frame_gap_s=0.033)
+    off = Tracker(TrackingConfig(weak_translation_share=0.0))._track(
+        frame, map_view(), T, None, None, no_keypoints, frame_gap_s=0.033
+    )
+    assert plain.reason == "" and off.reason == ""

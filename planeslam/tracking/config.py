@@ -216,6 +216,14 @@ class TrackingConfig:
     "Long runs")."""
     fast_max_jump_deg: float = 3.0
     """... or turned farther than this [deg]."""
+    weak_translation_share: float = 0.01
+    """A plane pose whose weakest translation direction holds less than this share of the
+    planes' translation information (`RegistrationResult.translation_observability`) is
+    taken only where the frame's keypoints agree with it (`points.min_inliers`), however
+    near the prediction; otherwise the robust estimate over every start decides (frames
+    without keypoints: no check). 7-Scenes' frame 352 was tracked 8 cm off along an axis
+    that two planes fixed with 0.3 of their normals; 0 turns the check off (README, "Pose
+    glitches")."""
     fast_max_correction_m: float = 0.05
     """Beyond `fast_max_gap_s`, the plane pose from the prediction alone (the fast path) is
     taken when it moved the prediction by at most this [m] ... Beyond it (frames far
@@ -400,4 +408,9 @@ class TrackingConfig:
         if not 0 <= self.icp_min_fitness <= 1:
             raise ConfigError(
                 f"tracking.icp_min_fitness must be in [0, 1], got {self.icp_min_fitness}"
+            )
+        if not 0 <= self.weak_translation_share < 1 / 3:
+            raise ConfigError(
+                "tracking.weak_translation_share must be in [0, 1/3) (a share of three "
+                f"directions' information), got {self.weak_translation_share}"
             )

@@ -956,11 +956,16 @@ class Tracker:
             and self.prediction_valid  # after a loss the prediction is no evidence
         ):
             T_fast = self._refined(frame, view, trusted, T_pred) if cfg.refine_planes else trusted.T
+        weak = (  # a direction that only a sliver of the planes' information fixes
+            trusted is not None
+            and points is not _NO_POINTS
+            and trusted.registration.translation_observability < cfg.weak_translation_share
+        )
         if (
             T_fast is not None
             and trusted is not None
             and (
-                self._near(T_fast, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
+                (not weak and self._near(T_fast, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last))
                 or self._points_agree(T_fast, points)
             )
         ):
@@ -983,6 +988,7 @@ class Tracker:
             if solve is None
             else f"plane pose {solve.registration.status.value}"
             + ("" if trusted is not None else " with residuals beyond the gates")
+            + (" with a weakly fixed translation the keypoints do not confirm" if weak else "")
         )
         # One estimate over every primitive, from every start that needs no plane prior.
         keypoints = points.get()
