@@ -275,8 +275,9 @@ class TrackingConfig:
     back, `tracking.glitches`): each is estimated again from its own planes and corners
     from the pose its good neighbours put it at, and kept within `fast_max_jump_*` of that
     pose; the others are left out of trajectory.txt as lost frames are (metrics.json
-    `pose_glitches` counts both). 7-Scenes at 30 Hz: 11 found, 5 re-estimated, 6 left out,
-    ATE 3.10 against 3.23 cm; the five-pass replay 3.75 against 3.89 (README)."""
+    `pose_glitches` counts both). 7-Scenes at 30 Hz before `weak_translation_share`: 11
+    found, 5 re-estimated, 6 left out, ATE 3.10 against 3.23 cm; the five-pass replay 3.75
+    against 3.89 (with it: none at 30 Hz, a few per pass on the replay; README)."""
     relocalise: bool = True
     """Search the whole map (corner, plane-triple, edge and keypoint hypotheses) when
     nothing near the prediction fits."""
