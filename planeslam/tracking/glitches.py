@@ -50,8 +50,11 @@ class PoseGlitches:
     judged: int
     """Poses with neighbours on both sides within `max_span_s`."""
     max_span_s: float
+    """Longest time between the neighbours a pose is judged against [s]."""
     min_jump_m: float
+    """Departure from their straight line that makes a glitch [m] ..."""
     min_jump_deg: float
+    """... or from their slerp [deg]."""
 
     def __len__(self) -> int:
         return int(len(self.timestamps))

@@ -988,7 +988,11 @@ class Tracker:
             if solve is None
             else f"plane pose {solve.registration.status.value}"
             + ("" if trusted is not None else " with residuals beyond the gates")
-            + (" with a weakly fixed translation the keypoints do not confirm" if weak else "")
+            + (
+                " with a weakly fixed translation the keypoints do not confirm"
+                if weak and T_fast is not None
+                else ""
+            )
         )
         # One estimate over every primitive, from every start that needs no plane prior.
         keypoints = points.get()
