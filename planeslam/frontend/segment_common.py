@@ -35,6 +35,9 @@ from planeslam.frontend.types import Plane, Segmentation
 
 log = logging.getLogger(__name__)
 
+DEFAULT_SENSOR = DepthNoiseConfig()
+"""The sensor `build_plane` assumes when its caller names none (its 1/z step)."""
+
 OUTLINE_STRIDE = 3
 """Outlines are traced on every 3rd pixel of every 3rd row (full-image pixels)."""
 
@@ -142,20 +145,20 @@ def build_plane(
     grid: PixelGrid,
     outline_epsilon_px: float,
     outline_stride: int = OUTLINE_STRIDE,
-    sensor: DepthNoiseConfig | None = None,
+    sensor: DepthNoiseConfig = DEFAULT_SENSOR,
 ) -> Plane | None:
     """Refit a plane on its inliers `xyz` (3, K) float64 (rows contiguous) and derive
     covariance, area, outline; `Plane.points` is the (K, 3) transposed view of `xyz`.
 
     `labels_small` is the label image strided by `outline_stride`, `box` the
     (rows, cols) slices bounding the plane in it (None: not in it). `sensor` gives the
-    1/z quantisation step (default `DepthNoiseConfig()`). None when the points are
+    1/z quantisation step. None when the points are
     degenerate (collinear)."""
     try:
         count, centroid, scatter = moments_of_columns(xyz[0], xyz[1], xyz[2])
         normal, d, rss = plane_from_moments(centroid, scatter)
         covariance = plane_covariance(normal, centroid, scatter, count, rss)
-        step = (sensor or DepthNoiseConfig()).inverse_depth_step_per_m
+        step = sensor.inverse_depth_step_per_m
         if step > 0 and _rounding_could_bias(xyz, normal, d, centroid, covariance, step):
             try:
                 normal, d, centroid, scatter, covariance = _quantised_refit(

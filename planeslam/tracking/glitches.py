@@ -14,7 +14,7 @@ frames shows, and the frames next to it do not); poses without such neighbours w
 `reestimate_glitches` settles them at the end of a run (`SLAM.finish`,
 `tracking.settle_glitches`): a glitched frame between keyframes is estimated again from the
 planes and corners it was tracked with, against the final map, starting from the pose its
-nearest good neighbours put it at (`interpolated_pose`), and keeps that estimate when it
+nearest good neighbours put it at (`interpolated_poses`), and keeps that estimate when it
 stays within the glitch limits of that pose; the others are left out of the trajectory,
 as lost frames are.
 """
@@ -88,7 +88,6 @@ def find_pose_glitches(
     glitch = np.zeros(n, dtype=bool)
     judged = np.zeros(n, dtype=bool)
     if n:
-        rotations = Rotation.from_matrix(poses[:, :3, :3])
         for run in _RUNS:
             # off[i]: the run starting at pose i, its least departure (in thresholds) over the
             # neighbour pairs around it; > 1 when every pose of the run departs from all of them
@@ -102,13 +101,13 @@ def find_pose_glitches(
                 if not len(i):
                     continue
                 least = np.full(len(i), np.inf)
-                turn = (rotations[a].inv() * rotations[b]).as_rotvec()
                 for k in range(run):
-                    s = (stamps[i + k] - stamps[a]) / span
-                    line = (1 - s)[:, None] * poses[a, :3, 3] + s[:, None] * poses[b, :3, 3]
-                    offset = np.linalg.norm(poses[i + k, :3, 3] - line, axis=1)
-                    slerp = rotations[a] * Rotation.from_rotvec(s[:, None] * turn)
-                    angle = np.degrees((slerp.inv() * rotations[i + k]).magnitude())
+                    line = interpolated_poses(
+                        poses[a], poses[b], (stamps[i + k] - stamps[a]) / span
+                    )
+                    offset = np.linalg.norm(poses[i + k, :3, 3] - line[:, :3, 3], axis=1)
+                    turned = np.einsum("mji,mjk->mik", line[:, :3, :3], poses[i + k, :3, :3])
+                    angle = np.degrees(Rotation.from_matrix(turned).magnitude())
                     least = np.minimum(least, np.maximum(offset / min_jump_m, angle / min_jump_deg))
                 off[i] = np.minimum(off[i], least)
                 if run == 1:
@@ -126,15 +125,16 @@ def find_pose_glitches(
     )
 
 
-def interpolated_pose(T_a: np.ndarray, T_b: np.ndarray, share: float) -> np.ndarray:
-    """(4, 4) pose `share` in [0, 1] of the way from T_a to T_b (4, 4): the position on the
-    straight line, the rotation on the slerp."""
+def interpolated_poses(T_a: np.ndarray, T_b: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """(M, 4, 4) poses `share` (M,) in [0, 1] of the way from T_a to T_b (M, 4, 4): the
+    positions on the straight lines, the rotations on the slerps."""
     from scipy.spatial.transform import Rotation
 
-    turn = (Rotation.from_matrix(T_a[:3, :3]).inv() * Rotation.from_matrix(T_b[:3, :3])).as_rotvec()
-    T = np.eye(4)
-    T[:3, :3] = T_a[:3, :3] @ Rotation.from_rotvec(share * turn).as_matrix()
-    T[:3, 3] = (1.0 - share) * T_a[:3, 3] + share * T_b[:3, 3]
+    R_a = Rotation.from_matrix(T_a[:, :3, :3])
+    turn = (R_a.inv() * Rotation.from_matrix(T_b[:, :3, :3])).as_rotvec()
+    T = np.tile(np.eye(4), (len(share), 1, 1))
+    T[:, :3, :3] = (R_a * Rotation.from_rotvec(share[:, None] * turn)).as_matrix()
+    T[:, :3, 3] = (1.0 - share)[:, None] * T_a[:, :3, 3] + share[:, None] * T_b[:, :3, 3]
     return T
 
 
@@ -168,9 +168,9 @@ def reestimate_glitches(
         span = float(stamps[b] - stamps[a])
         if not 0 < span <= max_span_s:
             continue
-        share = float(stamps[row] - stamps[a]) / span
-        starts[row] = (terms[row], interpolated_pose(poses[a], poses[b], share))
+        share = np.array([stamps[row] - stamps[a]]) / span
+        starts[row] = (terms[row], interpolated_poses(poses[[a]], poses[[b]], share)[0])
     return final_poses(starts, view, settings, thresholds, sigma_point_m, max_step_m, max_step_deg)
 
 
-__all__ = ["PoseGlitches", "find_pose_glitches", "interpolated_pose", "reestimate_glitches"]
+__all__ = ["PoseGlitches", "find_pose_glitches", "interpolated_poses", "reestimate_glitches"]
