@@ -135,6 +135,11 @@ def test_replay_points_at_the_source_and_replays_its_truth(tmp_path: Path) -> No
     truth, src_truth = read_tum(replay / "groundtruth.txt"), read_tum(source / "groundtruth.txt")
     np.testing.assert_allclose(truth.T_world_cam[7], src_truth.T_world_cam[3])
     np.testing.assert_allclose(np.diff(truth.timestamps), 1 / 30.0, atol=1e-6)
+    # evo reads the replay's truth too (a blank line between rows once made it refuse)
+    from evo.tools import file_interface
+
+    evo_truth = file_interface.read_tum_trajectory_file(str(replay / "groundtruth.txt"))
+    assert evo_truth.num_poses == len(rep)
 
 
 def test_a_plane_joins_only_within_its_own_fit_uncertainty() -> None:
