@@ -44,6 +44,22 @@ def test_a_jump_of_one_or_two_frames_is_found_and_its_neighbours_are_not(frames)
     np.testing.assert_allclose(found.timestamps, trajectory.timestamps[list(frames)])
 
 
+def test_two_jumps_one_frame_apart_are_both_found_and_the_frame_between_is_not() -> None:
+    """7-Scenes' frames 491 and 493: each hid the other, since the line from one glitch's
+    neighbour to the other glitch passes near it."""
+    trajectory = _orbit()
+    for k in (40, 42):
+        trajectory.T_world_cam[k, 2, 3] += 0.07
+    found = find_pose_glitches(trajectory)
+    np.testing.assert_allclose(found.timestamps, trajectory.timestamps[[40, 42]])
+
+
+def test_three_frames_off_together_are_not_taken_for_two_glitches() -> None:
+    trajectory = _orbit()
+    trajectory.T_world_cam[40:43, 2, 3] += 0.07  # a stretch, not two glitches around a good pose
+    assert len(find_pose_glitches(trajectory)) == 0  # longer than the two frames judged together
+
+
 def test_a_turn_off_the_slerp_is_found() -> None:
     trajectory = _orbit()
     spin = Rotation.from_rotvec([np.radians(5.0), 0.0, 0.0]).as_matrix()

@@ -5,11 +5,13 @@ At video rate a hand-held or robot camera moves smoothly: over a fifth of a seco
 path departs from the straight line (and its orientation from the slerp) between the poses
 before and after by millimetres (0.5 a t^2 is 1.5 cm at 3 m/s^2 over 0.1 s). A pose
 centimetres off that line while the poses around it agree with each other is a tracking or
-association error, not motion. Needs no ground truth. Each pose, and each two consecutive
-poses together, is compared with the interpolations between the neighbours one and two
-frames before and after it (the smallest departure counts, so a glitch of one or two
-frames shows, and the frames next to it do not); poses without such neighbours within
-`max_span_s` (the ends, sub-sampled sequences, gaps of lost frames) are not judged.
+association error, not motion. Needs no ground truth. Each pose, each two consecutive
+poses together, and two poses one frame apart whose pose between fits the same line (two
+glitches that would hide each other) are compared with the interpolations between the
+neighbours one and two frames before and after them (the smallest departure counts, so a
+glitch of one or two frames shows, and the frames next to it do not); poses without such
+neighbours within `max_span_s` (the ends, sub-sampled sequences, gaps of lost frames) are
+not judged.
 
 `reestimate_glitches` settles them at the end of a run (`SLAM.finish`,
 `tracking.settle_glitches`): a glitched frame between keyframes is estimated again from the
@@ -35,8 +37,10 @@ from planeslam.tracking.views import MapView
 _ENDS = ((1, 1), (1, 2), (2, 1), (2, 2))
 """(frames before, frames after) a run of poses of the neighbours it is interpolated from."""
 
-_RUNS = (1, 2)
-"""Lengths of the runs of consecutive poses judged together."""
+_PATTERNS = ((True,), (True, True), (True, False, True))
+"""Runs of consecutive poses judged together: True a pose that must depart, False one that
+must fit the same line (two glitches one frame apart, whose lines would pass near each
+other)."""
 
 
 @dataclass(frozen=True)
@@ -76,10 +80,11 @@ def find_pose_glitches(
     min_jump_m: float = 0.05,
     min_jump_deg: float = 3.0,
 ) -> PoseGlitches:
-    """The poses of `trajectory` (timestamps increasing) that, alone or with the next one,
-    are farther than `min_jump_m` [m] from the straight line or turned more than
-    `min_jump_deg` [deg] from the slerp between every pair of neighbours around them (one or
-    two frames before and after, at most `max_span_s` [s] apart): module docstring."""
+    """The poses of `trajectory` (timestamps increasing) that, alone, with the next one, or
+    with the one after it (the pose between fitting), are farther than `min_jump_m` [m]
+    from the straight line or turned more than `min_jump_deg` [deg] from the slerp between
+    every pair of neighbours around them (one or two frames before and after, at most
+    `max_span_s` [s] apart): module docstring."""
     from scipy.spatial.transform import Rotation  # 0.2 s to import: only when a run ends
 
     stamps = np.asarray(trajectory.timestamps, dtype=np.float64)
@@ -88,9 +93,11 @@ def find_pose_glitches(
     glitch = np.zeros(n, dtype=bool)
     judged = np.zeros(n, dtype=bool)
     if n:
-        for run in _RUNS:
+        for pattern in _PATTERNS:
+            run = len(pattern)
             # off[i]: the run starting at pose i, its least departure (in thresholds) over the
-            # neighbour pairs around it; > 1 when every pose of the run departs from all of them
+            # neighbour pairs around it; > 1 when every pose of the run that must depart
+            # departs from all of them (and the others fit each such line)
             off = np.full(n, np.inf)
             for before, after in _ENDS:
                 i = np.arange(before, n - run + 1 - after)
@@ -101,20 +108,22 @@ def find_pose_glitches(
                 if not len(i):
                     continue
                 least = np.full(len(i), np.inf)
-                for k in range(run):
+                for k, departs in enumerate(pattern):
                     line = interpolated_poses(
                         poses[a], poses[b], (stamps[i + k] - stamps[a]) / span
                     )
                     offset = np.linalg.norm(poses[i + k, :3, 3] - line[:, :3, 3], axis=1)
                     turned = np.einsum("mji,mjk->mik", line[:, :3, :3], poses[i + k, :3, :3])
                     angle = np.degrees(Rotation.from_matrix(turned).magnitude())
-                    least = np.minimum(least, np.maximum(offset / min_jump_m, angle / min_jump_deg))
+                    away = np.maximum(offset / min_jump_m, angle / min_jump_deg)
+                    least = np.minimum(least, away if departs else np.where(away > 1, 0.0, np.inf))
                 off[i] = np.minimum(off[i], least)
                 if run == 1:
                     judged[i] = True
-            departs = np.isfinite(off) & (off > 1)
-            for k in range(run):
-                glitch[k:] |= departs[: n - k]
+            flagged = np.isfinite(off) & (off > 1)
+            for k, departs in enumerate(pattern):
+                if departs:
+                    glitch[k:] |= flagged[: n - k]
     return PoseGlitches(
         timestamps=stamps[glitch],
         rows=np.flatnonzero(glitch),
