@@ -25,7 +25,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -33,6 +33,9 @@ from planeslam.io.trajectory import Trajectory
 from planeslam.tracking.estimator import ConstraintThresholds, EstimatorSettings
 from planeslam.tracking.final_poses import FrameTerms, final_poses
 from planeslam.tracking.views import MapView
+
+if TYPE_CHECKING:
+    from scipy.spatial.transform import Rotation
 
 _ENDS = ((1, 1), (1, 2), (2, 1), (2, 2))
 """(frames before, frames after) a run of poses of the neighbours it is interpolated from."""
@@ -93,6 +96,7 @@ def find_pose_glitches(
     glitch = np.zeros(n, dtype=bool)
     judged = np.zeros(n, dtype=bool)
     if n:
+        rotations = Rotation.from_matrix(poses[:, :3, :3])
         for pattern in _PATTERNS:
             run = len(pattern)
             # off[i]: the run starting at pose i, its least departure (in thresholds) over the
@@ -108,13 +112,17 @@ def find_pose_glitches(
                 if not len(i):
                     continue
                 least = np.full(len(i), np.inf)
+                turn = (rotations[a].inv() * rotations[b]).as_rotvec()
                 for k, departs in enumerate(pattern):
-                    line = interpolated_poses(
-                        poses[a], poses[b], (stamps[i + k] - stamps[a]) / span
+                    slerp, line = _slerp_and_line(
+                        rotations[a],
+                        turn,
+                        poses[a, :3, 3],
+                        poses[b, :3, 3],
+                        (stamps[i + k] - stamps[a]) / span,
                     )
-                    offset = np.linalg.norm(poses[i + k, :3, 3] - line[:, :3, 3], axis=1)
-                    turned = np.einsum("mji,mjk->mik", line[:, :3, :3], poses[i + k, :3, :3])
-                    angle = np.degrees(Rotation.from_matrix(turned).magnitude())
+                    offset = np.linalg.norm(poses[i + k, :3, 3] - line, axis=1)
+                    angle = np.degrees((slerp.inv() * rotations[i + k]).magnitude())
                     away = np.maximum(offset / min_jump_m, angle / min_jump_deg)
                     least = np.minimum(least, away if departs else np.where(away > 1, 0.0, np.inf))
                 off[i] = np.minimum(off[i], least)
@@ -141,10 +149,22 @@ def interpolated_poses(T_a: np.ndarray, T_b: np.ndarray, share: np.ndarray) -> n
 
     R_a = Rotation.from_matrix(T_a[:, :3, :3])
     turn = (R_a.inv() * Rotation.from_matrix(T_b[:, :3, :3])).as_rotvec()
+    slerp, line = _slerp_and_line(R_a, turn, T_a[:, :3, 3], T_b[:, :3, 3], share)
     T = np.tile(np.eye(4), (len(share), 1, 1))
-    T[:, :3, :3] = (R_a * Rotation.from_rotvec(share[:, None] * turn)).as_matrix()
-    T[:, :3, 3] = (1.0 - share)[:, None] * T_a[:, :3, 3] + share[:, None] * T_b[:, :3, 3]
+    T[:, :3, :3] = slerp.as_matrix()
+    T[:, :3, 3] = line
     return T
+
+
+def _slerp_and_line(
+    R_a: Rotation, turn: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, share: np.ndarray
+) -> tuple[Rotation, np.ndarray]:
+    """The rotations (M,) and positions (M, 3) `share` (M,) of the way from (R_a, p_a) to
+    (R_b, p_b), turn (M, 3) the rotation vector of R_a^-1 R_b: the slerps and the lines."""
+    from scipy.spatial.transform import Rotation
+
+    slerp = R_a * Rotation.from_rotvec(share[:, None] * turn)
+    return slerp, (1.0 - share)[:, None] * p_a + share[:, None] * p_b
 
 
 def reestimate_glitches(
