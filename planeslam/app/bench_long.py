@@ -85,7 +85,7 @@ def replay_sequence(source: Path, target: Path, passes: int, rate_hz: float = 30
         lines["associations.txt"].append(f"{t:.6f} {rgb} {t:.6f} {depth}")
         pose = truth_of[k]
         if pose is not None:
-            lines["groundtruth.txt"].append(format_tum_row(t, pose).rstrip("\n"))
+            lines["groundtruth.txt"].append(format_tum_row(t, pose))
     header = f"# replay of {source}: {passes} passes, {len(order)} frames at {rate_hz} Hz\n"
     for name, rows in lines.items():
         (target / name).write_text(header + "\n".join(rows) + "\n", encoding="utf-8")

@@ -91,10 +91,10 @@ def read_tum(path: str | Path) -> Trajectory:
 
 
 def format_tum_row(timestamp: float, T_world_cam: np.ndarray) -> str:
-    """One TUM row for one pose."""
+    """One TUM row for one pose (no line end)."""
     t, q = quat_from_pose(T_world_cam)
     values = " ".join(f"{v:.9f}" for v in (*t, *q))
-    return f"{timestamp:.6f} {values}\n"
+    return f"{timestamp:.6f} {values}"
 
 
 def write_tum(path: str | Path, trajectory: Trajectory, header: str = "") -> None:
@@ -116,7 +116,7 @@ class TumWriter:
         self._lines.write_line("# timestamp tx ty tz qx qy qz qw")
 
     def write(self, timestamp: float, T_world_cam: np.ndarray) -> None:
-        self._lines.write_line(format_tum_row(timestamp, T_world_cam).rstrip("\n"))
+        self._lines.write_line(format_tum_row(timestamp, T_world_cam))
 
     def close(self) -> None:
         self._lines.close()
