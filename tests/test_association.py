@@ -109,6 +109,37 @@ def test_a_picture_on_a_wall_does_not_take_the_walls_landmark():
     assert associate_planes(*args, weigh_unpaired=True) == [(0, 0)]
 
 
+def test_only_the_planes_a_selected_map_plane_could_take_are_weighed():
+    """Two contests in one frame: over a wall (map 0, selected: a structure) between the
+    wall and a picture, and over a cabinet face (map 1, not selected) between a large and
+    a small observation. Selecting map 0 decides the wall's contest by what leaving each
+    out loses (the wall keeps it) and leaves the cabinet's count-first (the lower weighted
+    cost, the small plane, wins), as True and False decide both."""
+    tilt = 1.2 * DEG
+    n_map = np.array([[-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    d_map = np.array([1.809, 2.0])
+    n_obs = np.array(
+        [
+            [-1.0, 0.0, 0.0],  # the wall
+            [-np.cos(tilt), np.sin(tilt), 0.0],  # the picture, 3.5 cm in front
+            [0.0, 0.0, -1.0],  # the cabinet face, large
+            [0.0, np.sin(tilt), -np.cos(tilt)],  # a small patch in front of it
+        ]
+    )
+    d_obs = np.array([1.816, 1.781, 2.01, 2.04])
+    weights = np.array([2.4, 0.3, 2.0, 0.2])
+    args = (n_map, d_map, n_obs, d_obs, np.eye(4), 10 * DEG, 0.1)
+    assert associate_planes(*args, weights=weights) == [(1, 0), (3, 1)]
+    assert associate_planes(*args, weights=weights, weigh_unpaired=True) == [(0, 0), (2, 1)]
+    selected = np.array([True, False])
+    assert associate_planes(*args, weights=weights, weigh_unpaired=selected) == [(0, 0), (3, 1)]
+    # a plane no selected map plane could take pairs wherever it can, however costly
+    assert associate_planes(*args[:2], n_obs[3:], d_obs[3:], *args[4:], weights=weights[3:],
+                            weigh_unpaired=selected) == [(0, 1)]  # fmt: skip
+    with pytest.raises(AssociationError, match="weigh_unpaired has shape"):
+        associate_planes(*args, weights=weights, weigh_unpaired=np.array([True]))
+
+
 def test_gates_reject_wrong_matches():
     n_map = np.array([[0.0, 0.0, 1.0]])
     d_map = np.array([0.0])
@@ -283,6 +314,18 @@ def test_corners_fix_their_planes_where_planes_alone_fail():
     assert isinstance(result, Association)
     assert result.corners == [(0, 0), (1, 1), (2, 2)]
     assert result.planes == truth  # the corners fixed their 7 planes, the other 2 followed
+    # a selection over the map planes reaches the other 2 as their own (2,) selection
+    selected = np.arange(len(n_map)) % 2 == 0
+    weighed = associate_with_corners(
+        n_map, d_map, cp_map, x_map, n_obs, d_obs, cp_obs, x_obs, T_pred, 10 * DEG, 0.1, 0.4,
+        weights=np.ones(len(n_obs)), weigh_unpaired=selected,
+    )  # fmt: skip
+    assert weighed == result
+    with pytest.raises(AssociationError, match="weigh_unpaired has shape"):
+        associate_with_corners(
+            n_map, d_map, cp_map, x_map, n_obs, d_obs, cp_obs, x_obs, T_pred, 10 * DEG, 0.1,
+            0.4, weigh_unpaired=selected[:2],
+        )  # fmt: skip
 
 
 def test_corner_with_mismatching_normals_is_rejected():

@@ -88,6 +88,10 @@ def test_unknown_section_is_rejected(tmp_path: Path) -> None:
         ("segmentation:\n  organized:\n    pixel_stride: 5\n", "pixel_stride must be 1, 2"),
         ("segmentation:\n  msac:\n    hypotheses: 0\n", "msac.hypotheses must be > 0"),
         ("sensor:\n  sigma_a_m: -0.001\n", "sensor.sigma_a_m must be > 0"),
+        (
+            "tracking:\n  weigh_unpaired_min_area_m2: -1\n",
+            "tracking.weigh_unpaired_min_area_m2 must be a number >= 0",
+        ),
         ("camera: [1, 2]\n", "expected a mapping"),
     ],
 )

@@ -38,6 +38,9 @@ logger = logging.getLogger(__name__)
 
 _FORBIDDEN = 1e6
 """Cost of a gated-out pair: far above any allowed cost (allowed costs are <= 3)."""
+_COUNT_FIRST = _FORBIDDEN / 2
+"""Cost of leaving out an observed plane that pairs wherever it can: above any sum of
+allowed (weighted) costs, below a gated-out pair's."""
 
 _PERMUTATIONS_3 = np.array(list(itertools.permutations(range(3))))
 """(6, 3) the ways of pairing a corner's three planes with another corner's three."""
@@ -201,6 +204,29 @@ def plane_association_cost(
     return cost, allowed
 
 
+def _map_selection(weigh_unpaired: bool | np.ndarray, num_map: int) -> bool | np.ndarray:
+    """`weigh_unpaired` checked: a bool, or a (num_map,) bool array (one per map plane)."""
+    if isinstance(weigh_unpaired, bool | np.bool_):
+        return bool(weigh_unpaired)
+    selected = np.asarray(weigh_unpaired)
+    if selected.dtype != bool or selected.shape != (num_map,):
+        raise AssociationError(
+            f"weigh_unpaired has shape {selected.shape} ({selected.dtype}), expected a bool or "
+            f"({num_map},) bool, one per map plane"
+        )
+    return selected
+
+
+def _weighed_rows(weigh_unpaired: bool | np.ndarray, allowed: np.ndarray) -> np.ndarray:
+    """(N,) bool: the observed planes whose leaving out costs their weight
+    (`associate_planes`): every one (True), none (False), or those `allowed` (N, M) to pair
+    with a map plane that the (M,) bool `weigh_unpaired` selects."""
+    selected = _map_selection(weigh_unpaired, allowed.shape[1])
+    if isinstance(selected, bool):
+        return np.full(len(allowed), selected)
+    return np.asarray((allowed & selected[None, :]).any(axis=1))
+
+
 def _assign(
     cost: np.ndarray, allowed: np.ndarray, miss: np.ndarray | None = None
 ) -> list[tuple[int, int]]:
@@ -235,7 +261,7 @@ def associate_planes(
     overlap_weight: float = 1.0,
     weights: np.ndarray | None = None,
     gate: np.ndarray | None = None,
-    weigh_unpaired: bool = False,
+    weigh_unpaired: bool | np.ndarray = False,
 ) -> list[tuple[int, int]]:
     """One-to-one (obs index, map index) plane pairs under a predicted pose T_map_obs (4, 4).
 
@@ -246,7 +272,11 @@ def associate_planes(
     the largest cost the gates allow instead: two planes that both fit one map
     plane (a wall and a picture hanging on it) leave out the one that loses
     less, so a small plane does not take a large one's partner because its
-    weighted cost is lower (`TrackingConfig.weigh_unpaired`).
+    weighted cost is lower (`TrackingConfig.weigh_unpaired`). `weigh_unpaired`
+    (M,) bool instead of True: only the observed planes the gates allow to pair with
+    one of the selected map planes (walls and floors:
+    `TrackingConfig.weigh_unpaired_min_area_m2`) are weighed so; the others pair
+    wherever they can, as without it.
     """
     cost, allowed = plane_association_cost(
         n_map,
@@ -262,11 +292,13 @@ def associate_planes(
         weights,
         gate,
     )
+    weighed = _weighed_rows(weigh_unpaired, allowed)
     miss = None
-    if weights is not None and weigh_unpaired:  # weights checked by plane_association_cost
+    if weights is not None and weighed.any():  # weights checked by plane_association_cost
         # inside the gates the angle and offset terms are each at most 1 (cost docstring)
         largest = 2.0 + (overlap_weight * (1.0 - min_overlap) if overlap is not None else 0.0)
-        miss = largest * np.asarray(weights, dtype=np.float64)
+        # the others are left out only where no allowed pair is left (count first)
+        miss = np.where(weighed, largest * np.asarray(weights, dtype=np.float64), _COUNT_FIRST)
     pairs = _assign(cost, allowed, miss)
     logger.debug("associated %d of %d observed planes (%d map planes)", len(pairs), *cost.shape)
     return pairs
@@ -351,7 +383,7 @@ def associate_with_corners(
     min_overlap: float = 0.0,
     weights: np.ndarray | None = None,
     gate: np.ndarray | None = None,
-    weigh_unpaired: bool = False,
+    weigh_unpaired: bool | np.ndarray = False,
 ) -> Association:
     """Associate corners first, fix their three plane pairs together, then the other planes.
 
@@ -373,8 +405,8 @@ def associate_with_corners(
        contradicting pairs fixed before it is dropped.
     4. The remaining planes go through `associate_planes` (with the
        matching rows / columns of `overlap`, `gate` and entries of `weights`, if
-       given, and `weigh_unpaired`). `gate` (N, M) bool also restricts the
-       corners' plane pairings.
+       given, and `weigh_unpaired`: True, or (M,) bool over the map planes). `gate`
+       (N, M) bool also restricts the corners' plane pairings.
     5. Corners whose three planes ended up associated are added
        (`associate_corners`).
     """
@@ -392,6 +424,7 @@ def associate_with_corners(
             f"({len(cp_obs)} obs, {len(cp_map)} map) differ in count"
         )
     T = as_pose(T_map_obs, "T_map_obs", AssociationError)
+    selected = _map_selection(weigh_unpaired, len(n_map))
     max_angle_rad = _gate("max_angle_rad", max_angle_rad, len(n_obs))
     max_offset_m = _gate("max_offset_m", max_offset_m, len(n_obs))
     max_corner_distance_m = _gate("max_corner_distance_m", max_corner_distance_m, len(cp_obs))
@@ -465,7 +498,7 @@ def associate_with_corners(
         min_overlap,
         weights=None if weights is None else np.asarray(weights, dtype=np.float64)[free_obs],
         gate=None if gate is None else np.asarray(gate, dtype=bool)[np.ix_(free_obs, free_map)],
-        weigh_unpaired=weigh_unpaired,
+        weigh_unpaired=selected if isinstance(selected, bool) else selected[free_map],
     )
     plane_pairs = sorted(
         list(fixed_obs.items()) + [(int(free_obs[i]), int(free_map[j])) for i, j in rest]

@@ -193,9 +193,18 @@ class TrackingConfig:
     cost the gates allow (`association.associate_planes`), so of two planes that fit one
     map plane (a wall and a picture on it) the one that loses less is left out. Off, the
     number of pairs comes first and a contested map plane goes to the lower weighted cost,
-    more often the smaller plane: on ICL-NUIM a picture took its wall's landmark at frame
-    62 and the wall became a second landmark (ATE 1.66 cm; on: 0.78 cm), but on 7-Scenes
-    on gives 3.67 against 3.23 cm and on TUM fr1/desk 0.40 against 0.29 cm (README)."""
+    more often the smaller plane. On for every plane, 7-Scenes loses (3.29 -> 3.83 cm, the
+    median over seven frame rates) and TUM fr1/desk too (0.29 -> 0.40 cm): see
+    `weigh_unpaired_min_area_m2` for the planes it applies to by default (README)."""
+    weigh_unpaired_min_area_m2: float | None = 3.0
+    """`weigh_unpaired` for the observed planes that could pair with a map plane of at least
+    this area [m^2] (a wall, a floor), whatever `weigh_unpaired` says; None: for none. A
+    structure goes to the observation that loses more when left out (on ICL-NUIM a picture
+    took its wall's landmark at frame 62 and the wall became a second landmark: 1.57 cm;
+    with this 0.66), while contests over furniture and clutter, where the inlier share says
+    little about which observation is the map plane, stay count-first: on 7-Scenes over
+    seven frame rates, with 1 m^2 a median 3.98 cm, with 2 or 3 m^2 3.29, as without
+    (README)."""
     max_outlier_rounds: int = 3
     """Rounds of dropping correspondences beyond the residual gates and solving again."""
     fast_max_gap_s: float = 0.1
@@ -409,6 +418,12 @@ class TrackingConfig:
         if not 0 <= self.icp_min_fitness <= 1:
             raise ConfigError(
                 f"tracking.icp_min_fitness must be in [0, 1], got {self.icp_min_fitness}"
+            )
+        area = self.weigh_unpaired_min_area_m2
+        if area is not None and (isinstance(area, bool) or not float(area) >= 0):
+            raise ConfigError(
+                "tracking.weigh_unpaired_min_area_m2 must be a number >= 0 [m^2] or null, "
+                f"got {area!r}"
             )
         if not 0 <= self.weak_translation_share < 1 / 3:
             raise ConfigError(

@@ -404,8 +404,19 @@ class Tracker:
             cfg.max_corner_distance_m,
             weights=frame.weights,
             gate=self._size_gate(frame, view.plane_weights),
-            weigh_unpaired=cfg.weigh_unpaired,
+            weigh_unpaired=self._weighed_map_planes(view),
         )
+
+    def _weighed_map_planes(self, view: MapView) -> bool | np.ndarray:
+        """Which map planes' contests `weigh_unpaired` decides (`associate_planes`): all
+        (True), or (M,) bool the structures, map planes of at least
+        `weigh_unpaired_min_area_m2`; False when map areas are unknown."""
+        cfg = self.config
+        if cfg.weigh_unpaired:
+            return True
+        if cfg.weigh_unpaired_min_area_m2 is None or view.plane_weights is None:
+            return False
+        return np.asarray(view.plane_weights >= cfg.weigh_unpaired_min_area_m2)
 
     def _size_gate(self, frame: FrameView, areas: np.ndarray | None) -> np.ndarray | None:
         """(N, M) bool: an observed plane may only match a map plane (of these areas (M,)
