@@ -16,6 +16,7 @@ from conftest import shared_sequence
 from planeslam.app.runner import run_sequence
 from planeslam.config import load_config, resolve_config
 from planeslam.core.camera import CameraConfig
+from planeslam.core.geometry import angle_between
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import read_tum
@@ -196,8 +197,7 @@ def test_a_picture_does_not_take_its_walls_landmark_on_icl_nuim() -> None:
         (a.id, b.id)
         for i, a in enumerate(walls)
         for b in walls[i + 1 :]
-        if np.degrees(np.arccos(min(1.0, float(a.normal @ b.normal)))) < 1.0
-        and abs(a.d - b.d) < 0.05
+        if angle_between(a.normal, b.normal) < np.radians(1.0) and abs(a.d - b.d) < 0.05
     ]
     assert len(walls) >= 4 and copies == [], copies
 
