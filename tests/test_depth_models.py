@@ -83,13 +83,13 @@ def _neighbourhood_disparity(d_true: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def test_noise_models_by_name_and_bad_names() -> None:
-    assert set(NOISE_MODELS) == {"kinect", "disparity"}
+    assert set(NOISE_MODELS) == {"kinect", "disparity", "tof"}
     assert isinstance(noise_model_of("disparity"), DisparityNoise)
     assert isinstance(noise_model_of(None), KinectNoise)
     custom = DisparityNoise(flying_prob=0.0)
     assert noise_model_of(custom) is custom
-    with pytest.raises(ConfigError, match="'tof'.*kinect, disparity"):
-        noise_model_of("tof")
+    with pytest.raises(ConfigError, match="'sonar'.*kinect, disparity, tof"):
+        noise_model_of("sonar")
     with pytest.raises(ConfigError, match="dropout_signal_low"):
         DisparityNoise(dropout_signal_low=0.2, dropout_signal_high=0.1)
     with pytest.raises(ConfigError, match="focal_px"):
@@ -401,8 +401,10 @@ scene: {camera_height_m: 0.7, start_azimuth_deg: 0, texture: {seed: 7, brightnes
     assert opts.camera().fx == pytest.approx(camera_with_hfov(57.0).fx)
     with pytest.raises(ConfigError, match="unknown key.*valid keys: noise_model"):
         from_mapping(SynthOptions, {"noise": "disparity"}, "test.yaml")
-    with pytest.raises(ConfigError, match=r"noise_model must be one of \['kinect', 'disparity'\]"):
-        from_mapping(SynthOptions, {"noise_model": "tof"}, "test.yaml")
+    with pytest.raises(
+        ConfigError, match=r"noise_model must be one of \['kinect', 'disparity', 'tof'\]"
+    ):
+        from_mapping(SynthOptions, {"noise_model": "sonar"}, "test.yaml")
     with pytest.raises(ConfigError, match="label"):
         SynthOptions(label="a b")
 

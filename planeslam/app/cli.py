@@ -34,7 +34,7 @@ from planeslam.app.view_commands import (
     add_viewer_options,
     viewer_from_args,
 )
-from planeslam.core.errors import PlaneSlamError
+from planeslam.core.errors import ConfigError, PlaneSlamError
 from planeslam.core.native_tuning import keep_freed_memory
 
 log = logging.getLogger("planeslam")
@@ -319,6 +319,61 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     long.add_argument("--out", type=Path, default=Path("out/long"), help="output folder")
     long.set_defaults(func=_cmd_bench_long)
+    robust = _command(
+        bench,
+        "robust",
+        help="robustness on generated sequences: a tuning and a validation set",
+        description="Render the benchmark's procedural sequences (rooms, furniture, "
+        "textures, depth models, camera paths drawn from fixed seeds; half a tuning set, "
+        "half a validation set) and run planeslam and Open3D RGB-D odometry on each: "
+        "tracked fraction, ATE, false jumps, relocalisations (and wrong ones), object size "
+        "error, fps; a summary per set and per kind. Tune on the tuning set; accept a "
+        "tracking change by the validation set's summary.",
+    )
+    robust.add_argument("--out", type=Path, default=Path("out/robust"), help="output folder")
+    robust.add_argument(
+        "--jobs", type=_positive_int, default=1, help="sequences at once (default 1)"
+    )
+    robust.add_argument(
+        "--split",
+        choices=("tuning", "validation", "all"),
+        default="all",
+        help="which set to run (default: both)",
+    )
+    robust.add_argument(
+        "--count",
+        type=_positive_int,
+        default=None,
+        help="only the first N sequences of the list (a quick look; default all 42)",
+    )
+    robust.add_argument("--executor", choices=("local", "dask"), default="local")
+    robust.add_argument("--scheduler", default=None, metavar="ADDRESS")
+    robust.add_argument(
+        "--markdown",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="also write the tables into a section of this Markdown page (e.g. "
+        "docs/benchmarks.md), replacing the section of the same --label",
+    )
+    robust.add_argument(
+        "--label", default="current code", help="the section's name (default 'current code')"
+    )
+    robust.add_argument(
+        "--no-open3d", action="store_true", help="skip the Open3D odometry baseline"
+    )
+    add_override_option(robust)
+    robust.set_defaults(func=_cmd_bench_robust)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {value}")
+    return value
 
 
 def _cmd_bench_frontend(args: argparse.Namespace) -> int:
@@ -353,6 +408,30 @@ def _cmd_bench_long(args: argparse.Namespace) -> int:
         seeds=args.seeds,
     )
     print(long_text(results))
+    return 0
+
+
+def _cmd_bench_robust(args: argparse.Namespace) -> int:
+    from planeslam.app.bench_robust import run_robust_command
+
+    if args.scheduler and args.executor != "dask":
+        raise ConfigError("--scheduler needs --executor dask")
+    print(
+        run_robust_command(
+            args.out,
+            args.command_line,
+            jobs=args.jobs,
+            split=args.split,
+            count=args.count,
+            executor=args.executor,
+            scheduler=args.scheduler,
+            overrides=override_layers(args),
+            markdown=args.markdown,
+            label=args.label,
+            with_open3d=not args.no_open3d,
+            progress=not args.quiet,
+        )
+    )
     return 0
 
 

@@ -2,8 +2,9 @@
 
 `render_frame` ray-casts a `Scene` (see `planeslam.sim.scenes`) from a pose
 and returns depth, colour and the id of the true plane seen by each pixel,
-with one of two depth error models, chosen by name (`noise_model=`):
-'kinect' (`KinectNoise`, the default) and 'disparity' (`DisparityNoise`).
+with one of three depth error models, chosen by name (`noise_model=`):
+'kinect' (`KinectNoise`, the default), 'disparity' (`DisparityNoise`) and 'tof'
+(`TofNoise`, a time-of-flight sensor: `planeslam.sim.tof`).
 `synthesize` writes a whole named scene as a TUM-layout folder with
 `camera.yaml` and a `truth.json` holding the exact planes, objects, edges,
 corners and trajectory (and how it was rendered); `load_truth` reads it back.
@@ -94,6 +95,7 @@ from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.core.geometry import invert_pose, quat_from_pose
 from planeslam.io.trajectory import Trajectory, write_tum
 from planeslam.sim.scenes import (
+    PLAIN_REFLECTANCE,
     SCENES,
     WORLD_UP,
     Box,
@@ -110,6 +112,7 @@ from planeslam.sim.scenes import (
     look_at,
     make_scene,
 )
+from planeslam.sim.tof import TofNoise
 
 __all__ = [
     "NOISE_MODELS",
@@ -132,6 +135,7 @@ __all__ = [
     "SynthOptions",
     "SynthResult",
     "Texture",
+    "TofNoise",
     "camera_with_hfov",
     "get_scene",
     "load_truth",
@@ -144,14 +148,13 @@ __all__ = [
     "render_sequence",
     "synthesize",
     "truth_dict",
+    "write_sequence",
 ]
 
 logger = logging.getLogger(__name__)
 
 TRUTH_SCHEMA = "planeslam.truth/1"
 _NEAR_CLIP_M = 0.05
-_LIGHT_WORLD = np.array([0.3, -0.45, 0.84]) / np.linalg.norm([0.3, -0.45, 0.84])
-_AMBIENT = 0.35
 
 
 @dataclass(frozen=True)
@@ -384,22 +387,23 @@ class DisparityNoise:
         return np.where(valid, z, 0.0).astype(np.float32)
 
 
-NoiseModel: TypeAlias = KinectNoise | DisparityNoise
+NoiseModel: TypeAlias = KinectNoise | DisparityNoise | TofNoise
 """A depth error model: how `render_frame` turns the exact surface into measured depth."""
 
-NOISE_MODELS: dict[str, type[KinectNoise] | type[DisparityNoise]] = {
+NOISE_MODELS: dict[str, type[KinectNoise] | type[DisparityNoise] | type[TofNoise]] = {
     "kinect": KinectNoise,
     "disparity": DisparityNoise,
+    "tof": TofNoise,
 }
 """Noise model name -> its parameter class (default parameters: `noise_model_of(name)`)."""
 
 
 def noise_model_of(model: str | NoiseModel | None = None) -> NoiseModel:
-    """A noise model by name ('kinect', 'disparity'), or the instance itself; None gives
-    the default 'kinect'. ConfigError listing the names for an unknown one."""
+    """A noise model by name ('kinect', 'disparity', 'tof'), or the instance itself; None
+    gives the default 'kinect'. ConfigError listing the names for an unknown one."""
     if model is None:
         return KinectNoise()
-    if isinstance(model, (KinectNoise, DisparityNoise)):
+    if isinstance(model, (KinectNoise, DisparityNoise, TofNoise)):
         return model
     if model not in NOISE_MODELS:
         raise ConfigError(
@@ -566,8 +570,8 @@ def _shade(
     normals = np.stack([p.normal for p in scene.planes])
     offsets = np.array([p.d for p in scene.planes])
     facing = np.where(normals @ eye + offsets < 0, -1.0, 1.0)  # two-sided panels seen from behind
-    lambert = np.maximum(facing * (normals @ _LIGHT_WORLD), 0.0)
-    shade = np.append(_AMBIENT + (1.0 - _AMBIENT) * lambert, 0.0).astype(np.float32)
+    lambert = np.maximum(facing * (normals @ scene.light_world), 0.0)
+    shade = np.append(scene.ambient + (1.0 - scene.ambient) * lambert, 0.0).astype(np.float32)
     idx = np.where(pid < 0, P, pid)
     inv_c = np.take(inv_cell, idx)
     iu = np.floor(coord_u * inv_c).astype(np.int32)
@@ -579,7 +583,18 @@ def _shade(
         h = h * np.uint32(2654435761)
     noise = ((h >> np.uint32(13)) & np.uint32(255)).astype(np.float32) * np.float32(1.0 / 255.0)
     checker = ((np.right_shift(iu, 2) + np.right_shift(iv, 2)) & 1).astype(np.float32)
-    tex = np.float32(0.45) + np.float32(0.35) * noise + np.float32(0.2) * checker
+    weights = np.array([p.texture_weights for p in scene.planes] + [(0.45, 0.35, 0.2)])
+    windows = np.array(
+        [p.poster or (-np.inf, np.inf, -np.inf, np.inf) for p in scene.planes]
+        + [(-np.inf, np.inf, -np.inf, np.inf)]
+    )
+    w = np.take(weights.astype(np.float32), idx, axis=0)
+    win = np.take(windows, idx, axis=0)
+    plain = (coord_u < win[..., 0]) | (coord_u > win[..., 1])
+    plain |= (coord_v < win[..., 2]) | (coord_v > win[..., 3])
+    if plain.any():
+        w[plain] = np.array([PLAIN_REFLECTANCE, 0.0, 0.0], dtype=np.float32)
+    tex = w[..., 0] + w[..., 1] * noise + w[..., 2] * checker
     reflectance = tex * np.take(albedo.mean(axis=1), idx)
     tex *= np.take(shade * np.float32(255.0), idx)
     return np.take(albedo, idx, axis=0) * tex[..., None], reflectance
@@ -781,7 +796,7 @@ class SynthOptions:
     """How to render a named scene beyond its defaults (`planeslam synth` flags, the
     benchmark suite's `synth:` of a scene); the defaults render the scene as it is."""
 
-    noise_model: Literal["kinect", "disparity"] = "kinect"
+    noise_model: Literal["kinect", "disparity", "tof"] = "kinect"
     """Depth error model (module docstring), with its default constants."""
     hfov_deg: float | None = None
     """Horizontal field of view [deg] of the 640 x 480 camera (`camera_with_hfov`);
@@ -875,6 +890,39 @@ def synthesize(
     if scene_name not in SCENES:
         raise ConfigError(f"unknown scene {scene_name!r}; scenes: {', '.join(SCENES)}")
     model = noise_model_of(noise_model)
+    traj_seq, noise_seq = np.random.SeedSequence(seed).spawn(2)
+    scene, trajectory = get_scene(
+        scene_name, frames, np.random.default_rng(traj_seq), scene_options
+    )
+    return write_sequence(
+        scene,
+        trajectory,
+        out_dir,
+        seed,
+        camera=camera,
+        noise=noise,
+        noise_model=model,
+        rng=np.random.default_rng(noise_seq),
+        rendering={"scene_options": to_mapping(scene_options or SceneOptions())},
+    )
+
+
+def write_sequence(
+    scene: Scene,
+    trajectory: Trajectory,
+    out_dir: str | Path,
+    seed: int,
+    camera: CameraConfig | None = None,
+    noise: bool = True,
+    noise_model: str | NoiseModel | None = None,
+    rng: np.random.Generator | None = None,
+    rendering: dict[str, Any] | None = None,
+) -> SynthResult:
+    """Render `scene` along `trajectory` into `out_dir` as a TUM-layout sequence with
+    truth (the files `synthesize` lists). `rng` draws the sensor noise (default: seeded
+    with `seed`); `rendering` adds entries to truth.json's 'rendering' (how the sequence
+    was made). ConfigError for a distorted camera or a depth range the PNGs cannot hold."""
+    model = noise_model_of(noise_model)
     camera = camera or CameraConfig()
     if camera.is_distorted:
         raise ConfigError(
@@ -885,11 +933,8 @@ def synthesize(
             f"camera.depth_scale {camera.depth_scale} cannot store {model.max_range_m} m "
             f"in a 16-bit depth PNG (need depth_scale <= {int(65535 / model.max_range_m)})"
         )
-    traj_seq, noise_seq = np.random.SeedSequence(seed).spawn(2)
-    scene, trajectory = get_scene(
-        scene_name, frames, np.random.default_rng(traj_seq), scene_options
-    )
-    rng = np.random.default_rng(noise_seq)
+    rng = rng if rng is not None else np.random.default_rng(seed)
+    scene_name = scene.name
     out = Path(out_dir)
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(parents=True, exist_ok=True)
@@ -933,7 +978,7 @@ def synthesize(
         "noise": noise,
         "noise_model": noise_model_name(model),
         "noise_constants": to_mapping(model),
-        "scene_options": to_mapping(scene_options or SceneOptions()),
+        **(rendering or {}),
     }
     _dump_truth(truth_dict(scene, trajectory, camera, seed, rendering), truth_path)
     logger.info("wrote %d frames of %s to %s", len(names), scene_name, out)

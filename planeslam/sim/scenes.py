@@ -49,6 +49,18 @@ _ROOM_FACE_NAMES = {"+z": "ceiling", "-z": "floor"}
 _BOX_FACE_NAMES = {"+z": "top", "-z": "bottom"}
 _TOUCH_TOL_M = 1e-6
 
+DEFAULT_LIGHT_WORLD = np.array([0.3, -0.45, 0.84]) / np.linalg.norm([0.3, -0.45, 0.84])
+"""Direction toward the scenes' light (world frame, from above) unless a scene sets one."""
+DEFAULT_AMBIENT = 0.35
+"""Ambient share of the scenes' light unless a scene sets one."""
+
+TEXTURE_PATTERNS = ("noise", "repetitive", "none", "posters")
+"""`Texture.pattern`: a hash of cells plus a coarse checkerboard (natural-looking, every
+patch unique), a plain checkerboard (every patch looks like many others), uniform
+colour, or uniform surfaces with one textured poster on each plane of 1 m^2 or more."""
+PLAIN_REFLECTANCE = 0.725
+"""Texture factor of a plain surface: the mean of the default pattern's."""
+
 
 def rot_z(yaw_rad: float) -> np.ndarray:
     """(3, 3) rotation about the world z axis by `yaw_rad` [rad]."""
@@ -152,6 +164,12 @@ class ScenePlane:
     """Cell size of the procedural texture [m]."""
     texture_salt: int
     """Per-plane salt of the texture hash."""
+    texture_weights: tuple[float, float, float] = (0.45, 0.35, 0.2)
+    """(base, hash-noise weight, checkerboard weight) of the texture: reflectance factor
+    base + w_noise * noise + w_checker * checker, noise in [0, 1], checker 0 or 1."""
+    poster: tuple[float, float, float, float] | None = None
+    """(u0, u1, v0, v1) [m] in plane coordinates: the texture only inside this window
+    (a poster on a plain wall), uniform outside; None: textured everywhere."""
 
     @property
     def polygon(self) -> np.ndarray:
@@ -212,6 +230,10 @@ class Scene:
     objects: tuple[SceneObject, ...]
     edges: tuple[SceneEdge, ...]
     corners: tuple[SceneCorner, ...]
+    light_world: np.ndarray = field(default_factory=lambda: DEFAULT_LIGHT_WORLD.copy())
+    """(3,) unit direction toward the light, world frame (Lambertian shading)."""
+    ambient: float = DEFAULT_AMBIENT
+    """Share of the light that reaches every surface whatever its normal, in [0, 1]."""
 
     def plane_by_name(self, name: str) -> ScenePlane:
         """The plane called `name`; ConfigError listing the names when absent."""
@@ -245,8 +267,19 @@ class Texture:
     cell_m: tuple[float, float] = (0.02, 0.05)
     """Range of the texture's cell size [m] (the pattern is a hash of cells plus a
     checkerboard of 4 x 4 cells)."""
+    pattern: str = "noise"
+    """One of TEXTURE_PATTERNS."""
+    contrast: float = 1.0
+    """Scale of the pattern's amplitude in (0, 1] (low-contrast surfaces below 0.3)."""
 
     def __post_init__(self) -> None:
+        if self.pattern not in TEXTURE_PATTERNS:
+            raise ConfigError(
+                f"texture.pattern must be one of {', '.join(TEXTURE_PATTERNS)}, "
+                f"got {self.pattern!r}"
+            )
+        if not 0.0 < float(self.contrast) <= 1.0:
+            raise ConfigError(f"texture.contrast must be in (0, 1], got {self.contrast!r}")
         object.__setattr__(self, "brightness", tuple(float(v) for v in self.brightness))
         object.__setattr__(self, "cell_m", tuple(float(v) for v in self.cell_m))
         lo, hi = self.brightness if len(self.brightness) == 2 else (np.nan, np.nan)
@@ -274,6 +307,33 @@ def _appearance(texture: Texture, plane_id: int) -> tuple[np.ndarray, float, int
     return np.clip(albedo, 0.03, 0.95), cell, salt
 
 
+def _pattern(
+    texture: Texture, plane_id: int, half_size_m: np.ndarray
+) -> tuple[tuple[float, float, float], tuple[float, float, float, float] | None]:
+    """(base, noise weight, checker weight) and the poster window of one plane."""
+    c = float(texture.contrast)
+    noise_weights = (PLAIN_REFLECTANCE - c * 0.275, c * 0.35, c * 0.2)
+    if c == 1.0:
+        noise_weights = (0.45, 0.35, 0.2)  # the historic constants, bit for bit
+    checker_weights = (PLAIN_REFLECTANCE - c * 0.25, 0.0, c * 0.5)
+    if texture.pattern == "noise":
+        return noise_weights, None
+    if texture.pattern == "repetitive":
+        return checker_weights, None
+    if texture.pattern == "none":
+        return (PLAIN_REFLECTANCE, 0.0, 0.0), None
+    # posters: a window of 0.4-1.0 m on planes of 1 m^2 or more, the rest plain
+    gen = np.random.default_rng([texture.seed, plane_id, 1])
+    content = noise_weights if gen.random() < 0.5 else checker_weights
+    if 4.0 * half_size_m[0] * half_size_m[1] < 1.0:
+        return (PLAIN_REFLECTANCE, 0.0, 0.0), None
+    size = gen.uniform(0.4, 1.0, size=2)
+    size = np.minimum(size, 2.0 * half_size_m * 0.8)
+    lo = gen.uniform(-half_size_m * 0.9, half_size_m * 0.9 - size)
+    window = (float(lo[0]), float(lo[0] + size[0]), float(lo[1]), float(lo[1] + size[1]))
+    return content, window
+
+
 def _box_faces(box: Box) -> list[tuple[str, np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
     """(face name, normal, centre, axes (2,3), half sizes (2,)) of a box's existing faces."""
     faces = []
@@ -296,10 +356,13 @@ def make_scene(
     boxes: tuple[Box, ...] = (),
     structures: tuple[Structure, ...] = (),
     texture: Texture | int = 0,
+    light_world: np.ndarray | None = None,
+    ambient: float | None = None,
 ) -> Scene:
     """Compile boxes and structures into planes (ids in order: boxes, then structures),
     objects, true edges and true corners. Appearance is a fixed function of the
-    `texture` (a `Texture`, or just its seed) and the plane id."""
+    `texture` (a `Texture`, or just its seed) and the plane id; `light_world` (3,) and
+    `ambient` set the lighting (default: light from above, ambient 0.35)."""
     texture = texture if isinstance(texture, Texture) else Texture(seed=int(texture))
     planes: list[ScenePlane] = []
     objects: list[SceneObject] = []
@@ -343,6 +406,7 @@ def make_scene(
         objects.append(SceneObject(obj_id, struct.name, "structure", tuple(ids), size))
     for pid, (obj_id, pname, normal, centre, axes, half, two_sided) in enumerate(raw):
         albedo, cell, salt = _appearance(texture, pid)
+        weights, poster = _pattern(texture, pid, np.asarray(half))
         normal = normal / np.linalg.norm(normal)
         planes.append(
             ScenePlane(
@@ -358,6 +422,8 @@ def make_scene(
                 albedo_rgb=albedo,
                 texture_cell_m=cell,
                 texture_salt=salt,
+                texture_weights=weights,
+                poster=poster,
             )
         )
     names = [p.name for p in planes]
@@ -365,6 +431,12 @@ def make_scene(
         raise ConfigError(f"scene {name!r}: plane names are not unique: {names}")
     edges = _true_edges(planes)
     corners = _true_corners(planes, edges)
+    light = DEFAULT_LIGHT_WORLD if light_world is None else np.asarray(light_world, float)
+    if light.shape != (3,) or not np.isfinite(light).all() or np.linalg.norm(light) < 1e-9:
+        raise ConfigError(f"scene {name!r}: light_world must be a non-zero 3-vector")
+    ambient = DEFAULT_AMBIENT if ambient is None else float(ambient)
+    if not 0.0 <= ambient <= 1.0:
+        raise ConfigError(f"scene {name!r}: ambient must be in [0, 1], got {ambient}")
     return Scene(
         name=name,
         boxes=tuple(boxes),
@@ -373,6 +445,8 @@ def make_scene(
         objects=tuple(objects),
         edges=tuple(edges),
         corners=tuple(corners),
+        light_world=light / np.linalg.norm(light),
+        ambient=ambient,
     )
 
 

@@ -1,0 +1,164 @@
+"""`planeslam bench robust`: the robustness benchmark (`planeslam.eval.robust`) with a
+progress bar; its tables go to the output folder and, with `--markdown`, into a section
+of a Markdown page (docs/benchmarks.md) headed by the command, commit, date, machine and
+load average."""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import subprocess
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Literal
+
+from planeslam.app.progress import progress_bar
+from planeslam.core.config import ConfigLayer
+from planeslam.core.errors import ConfigError
+from planeslam.core.safe_files import write_text_atomic
+from planeslam.eval.robust import (
+    RobustResult,
+    RobustRow,
+    benchmark_sequences,
+    rows_markdown,
+    run_robust,
+    summary_markdown,
+)
+
+
+@dataclass(frozen=True)
+class BenchContext:
+    """Where and when a benchmark ran: the heading of its Markdown section."""
+
+    command: str
+    commit: str
+    date_utc: str
+    machine: str
+    load_average: tuple[float, float, float]
+
+    @classmethod
+    def now(cls, command: str) -> BenchContext:
+        return cls(command, git_commit(), _utc_now(), machine_name(), os.getloadavg())
+
+    def heading_lines(self, seconds: float) -> str:
+        load = " ".join(f"{v:.2f}" for v in self.load_average)
+        return (
+            f"Command: `{self.command}`  \n"
+            f"Commit {self.commit}, {self.date_utc}, {self.machine}, load average at the "
+            f"start {load}, {seconds / 60:.1f} min.\n"
+        )
+
+
+def _utc_now() -> str:
+    return datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def git_commit() -> str:
+    """The short commit of the planeslam checkout, with '+changes' when the tree is dirty;
+    'unknown' outside a git checkout."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        commit = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=10,
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=10,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return commit + ("+changes" if dirty else "")
+
+
+def machine_name() -> str:
+    """'<cpu model>, <n> cores' (Linux /proc/cpuinfo, else the platform's processor)."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} cores"
+
+
+def replace_section(page: str, label: str, section: str) -> str:
+    """`page` with the section between the markers of `label` replaced by `section`, or
+    with it appended when the page has no such section."""
+    begin, end = f"<!-- bench robust: {label} -->", f"<!-- end bench robust: {label} -->"
+    block = f"{begin}\n{section.rstrip()}\n{end}\n"
+    pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end) + r"\n?", re.DOTALL)
+    if pattern.search(page):
+        return pattern.sub(lambda _: block, page, count=1)
+    return (page.rstrip() + "\n\n" if page.strip() else "") + block
+
+
+def robust_section(label: str, result: RobustResult, context: BenchContext) -> str:
+    """The Markdown section of one benchmark run: heading, summaries, per-sequence rows."""
+    return (
+        f"### Robust benchmark: {label}\n\n"
+        + context.heading_lines(result.seconds)
+        + f"{result.jobs} job(s) at once on the {result.executor} executor.\n\n"
+        + summary_markdown(result.rows)
+        + "\n<details><summary>Per sequence</summary>\n\n"
+        + rows_markdown(result.rows)
+        + "\n</details>\n"
+    )
+
+
+def run_robust_command(
+    out_dir: Path,
+    command: str,
+    jobs: int = 1,
+    split: Literal["tuning", "validation", "all"] = "all",
+    count: int | None = None,
+    executor: Literal["local", "dask"] = "local",
+    scheduler: str | None = None,
+    overrides: Sequence[ConfigLayer] = (),
+    markdown: Path | None = None,
+    label: str = "current code",
+    with_open3d: bool = True,
+    progress: bool = False,
+) -> str:
+    """Run the benchmark, write robust.md into `out_dir` (and the section `label` of
+    `markdown`), and return the summary tables."""
+    if "-->" in label or "\n" in label:
+        raise ConfigError(f"--label {label!r}: use one line without '-->'")
+    sequences = benchmark_sequences() if count is None else benchmark_sequences(count)
+    if split != "all":
+        sequences = [s for s in sequences if s.split == split]
+    context = BenchContext.now(command)
+    with progress_bar(len(sequences), "robust", "seq", enabled=progress) as bar:
+
+        def on_row(row: RobustRow) -> None:
+            ours = row.planeslam
+            status = ours.error or f"tracked {ours.tracked_fraction or 0:.0%}"
+            bar.step(f"{row.name}: {status}")
+
+        result = run_robust(
+            out_dir,
+            sequences,
+            jobs=jobs,
+            executor=executor,
+            scheduler=scheduler,
+            overrides=overrides,
+            with_open3d=with_open3d,
+            on_row=on_row,
+        )
+    section = robust_section(label, result, context)
+    written = [write_text_atomic(Path(out_dir) / "robust.md", section + "\n")]
+    if markdown is not None:
+        page = markdown.read_text(encoding="utf-8") if markdown.is_file() else "# Benchmarks\n"
+        written.append(write_text_atomic(markdown, replace_section(page, label, section)))
+    return summary_markdown(result.rows) + "\nwritten: " + ", ".join(str(p) for p in written)

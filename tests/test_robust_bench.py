@@ -1,0 +1,271 @@
+"""The procedural generator and the robustness benchmark's figures (`planeslam bench
+robust`): seeds repeat, every kind is drawn in both sets, and the columns are computed as
+documented, checked on planted jumps and planted wrong relocalisations."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from planeslam.app.bench_robust import replace_section
+from planeslam.core.camera import CameraConfig
+from planeslam.core.errors import ConfigError
+from planeslam.eval.robust import (
+    BenchSequence,
+    MethodFigures,
+    RobustRow,
+    benchmark_sequences,
+    false_jump_m,
+    method_figures,
+    run_sequence,
+    summaries,
+    summary_markdown,
+    wrong_relocalisations,
+)
+from planeslam.io.trajectory import Trajectory, read_tum
+from planeslam.sim.procedural import (
+    DEPTH_MODELS,
+    FURNITURE_KINDS,
+    TEXTURE_KINDS,
+    TRAJECTORY_KINDS,
+    build_sequence,
+    draw_recipe,
+    write_procedural,
+)
+from planeslam.sim.render import load_truth, render_frame
+from planeslam.sim.scenes import Box, Texture, make_scene
+
+pytestmark = pytest.mark.unit
+
+
+def _poses(n: int, step_m: float = 0.05) -> np.ndarray:
+    """(n, 4, 4) poses along a curve (not a line: the ATE alignment needs that)."""
+    k = np.arange(n)
+    T = np.tile(np.eye(4), (n, 1, 1))
+    T[:, :3, 3] = np.column_stack([step_m * k, 0.1 * np.sin(k / 3), 0.05 * np.cos(k / 4)])
+    return T
+
+
+# --------------------------------------------------------------------------- generator
+
+
+def test_a_seed_gives_the_same_sequence_and_another_seed_another() -> None:
+    a, b, c = draw_recipe(11), draw_recipe(11), draw_recipe(12)
+    assert a == b and a != c
+    (scene_a, path_a), (scene_b, path_b) = build_sequence(a), build_sequence(b)
+    assert np.array_equal(path_a.T_world_cam, path_b.T_world_cam)
+    assert [p.d for p in scene_a.planes] == [p.d for p in scene_b.planes]
+    assert not np.array_equal(path_a.T_world_cam[:2], build_sequence(c)[1].T_world_cam[:2])
+
+
+def test_a_rendered_sequence_repeats_byte_for_byte(tmp_path: Path) -> None:
+    recipe = draw_recipe(3, trajectory="orbit", texture="posters", depth_model="tof")
+    first = write_procedural(recipe, tmp_path / "a", max_frames=2)
+    second = write_procedural(recipe, tmp_path / "b", max_frames=2)
+    for p, q in zip(
+        first.depth_paths + first.rgb_paths, second.depth_paths + second.rgb_paths, strict=True
+    ):
+        assert p.read_bytes() == q.read_bytes()
+    truth = load_truth(first.out_dir)
+    assert truth["rendering"]["recipe"]["seed"] == 3
+    assert truth["rendering"]["noise_model"] == "tof"
+    assert any(o["class"] == "box" for o in truth["objects"])  # the orbit's box, with its size
+    assert len(read_tum(first.groundtruth_path)) == 2
+
+
+def test_every_kind_is_drawn_in_both_sets() -> None:
+    sequences = benchmark_sequences()
+    assert len(sequences) >= 40
+    for split in ("tuning", "validation"):
+        recipes = [s.recipe for s in sequences if s.split == split]
+        assert len(recipes) == len(sequences) // 2
+        assert {r.trajectory for r in recipes} == set(TRAJECTORY_KINDS)
+        assert {r.texture for r in recipes} == set(TEXTURE_KINDS)
+        assert {r.depth_model for r in recipes} == set(DEPTH_MODELS)
+        for kind in TRAJECTORY_KINDS:
+            assert sum(r.trajectory == kind for r in recipes) == 3
+    recipes = [s.recipe for s in sequences]
+    assert {f for r in recipes for f in r.furniture} == set(FURNITURE_KINDS)
+    assert {r.square_room for r in recipes} == {True, False}
+    assert {r.open_room for r in recipes} == {True, False}
+    assert any(r.symmetric for r in recipes) and not all(r.symmetric for r in recipes)
+
+
+@pytest.mark.parametrize("kind", TRAJECTORY_KINDS)
+def test_each_path_is_what_its_kind_says(kind: str) -> None:
+    scene, path = build_sequence(draw_recipe(5, trajectory=kind))
+    t, xyz = path.timestamps, path.positions
+    dt = np.diff(t)
+    steps = np.linalg.norm(np.diff(xyz, axis=0), axis=1)
+    assert np.all(dt > 0)
+    room = scene.object_by_name("room")
+    assert room.object_class == "room"
+    if kind in ("handheld", "rotation", "wall", "loop"):
+        assert np.allclose(dt, 1 / 30)
+    if kind == "robot_steps":
+        assert np.all((dt >= 0.5) & (dt <= 1.0))
+        assert np.all((steps > 0.05) & (steps <= 0.2 + 1e-9))
+    if kind == "orbit":
+        assert np.all((dt >= 0.9) & (dt <= 1.1))
+        assert 24 <= len(path) <= 36
+        assert scene.objects[1].object_class == "box"  # the circled box
+    if kind == "keyframes":
+        assert np.all((dt >= 0.2 - 1e-9) & (dt <= 1.0 + 1e-9))  # 1-5 Hz
+    if kind == "rotation":
+        assert np.allclose(steps, 0.0)
+    if kind == "loop":
+        assert np.allclose(xyz[0], xyz[-1], atol=0.03)
+    if kind == "wall":  # close to one wall
+        walls = [p for p in scene.planes if p.name.startswith("room.wall")]
+        nearest = min(abs(float(p.normal @ xyz[0] + p.d)) for p in walls)
+        assert 0.55 <= nearest <= 1.05
+
+
+def test_textures_render_as_named() -> None:
+    room = Box("room", np.array([0.0, 0.0, 1.25]), np.array([4.0, 4.0, 2.5]), kind="room")
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # looks +x
+    T[:3, 3] = [0.5, 0.0, 1.25]
+    camera = CameraConfig()
+    spread = {}
+    for pattern in ("none", "repetitive", "noise"):
+        scene = make_scene("wall", (room,), texture=Texture(seed=1, pattern=pattern))
+        frame = render_frame(scene, T, camera, np.random.default_rng(0), noise=False)
+        wall = frame.plane_id == scene.plane_by_name("room.wall_+x").id
+        grey = frame.rgb.astype(float).mean(axis=2)[wall]
+        spread[pattern] = float(np.std(grey))
+        if pattern == "repetitive":  # two levels only: a checkerboard
+            assert len(np.unique(np.round(grey))) <= 60
+    assert spread["none"] < 2.0 < spread["repetitive"]
+    assert spread["noise"] > 2.0
+    with pytest.raises(ConfigError, match="pattern"):
+        Texture(pattern="marble")
+
+
+def test_tof_noise_grows_with_depth_and_drops_dark_faces() -> None:
+    from planeslam.sim.render import _SurfaceTruth
+    from planeslam.sim.tof import TofNoise
+
+    model = TofNoise()
+    H, W = 60, 80
+    rng = np.random.default_rng(0)
+    spreads = []
+    for z in (1.0, 3.0):
+        truth = _SurfaceTruth(
+            np.ones((H, W), bool),
+            np.full((H, W), z),
+            np.zeros((H, W)),
+            np.full((H, W), 0.5, np.float32),
+        )
+        depth = model.measure_depth(truth, CameraConfig(), rng)
+        spreads.append(float(np.std(depth[depth > 0])))
+    assert spreads[1] > 2 * spreads[0]
+    dark = _SurfaceTruth(
+        np.ones((H, W), bool),
+        np.full((H, W), 4.0),
+        np.zeros((H, W)),
+        np.full((H, W), 0.1, np.float32),
+    )
+    assert (model.measure_depth(dark, CameraConfig(), rng) > 0).mean() < 0.05
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def test_a_planted_jump_is_the_false_jump() -> None:
+    truth = _poses(20)
+    estimate = truth.copy()
+    estimate[12:, 1, 3] += 0.3  # a 30 cm sideways jump between frames 11 and 12
+    assert false_jump_m(truth, estimate) == pytest.approx(0.3)
+    assert false_jump_m(truth, truth) == pytest.approx(0.0)
+    # A rigid offset of the whole estimate is no jump.
+    offset = np.eye(4)
+    offset[:3, 3] = [1.0, -2.0, 0.5]
+    assert false_jump_m(truth, offset @ truth) == pytest.approx(0.0, abs=1e-12)
+
+
+def test_a_planted_wrong_relocalisation_is_counted() -> None:
+    truth = _poses(3)
+    reloc = truth.copy()
+    reloc[1, :3, 3] += [0.0, 0.5, 0.0]  # 50 cm off
+    turned = truth[2].copy()
+    c, s = np.cos(np.deg2rad(8.0)), np.sin(np.deg2rad(8.0))
+    turned[:3, :3] = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])  # 8 deg off
+    reloc[2] = turned
+    assert wrong_relocalisations(np.eye(4), reloc, truth) == 2
+    assert wrong_relocalisations(np.eye(4), truth, truth) == 0
+
+
+def test_method_figures_on_a_run_with_a_jump_a_wrong_relocalisation_and_lost_frames() -> None:
+    n = 30
+    stamps = np.arange(n) / 30.0
+    truth = Trajectory(stamps, _poses(n))
+    est_poses = _poses(n)
+    est_poses[20:, 1, 3] += 0.4  # a jump at frame 20 that stays
+    keep = np.r_[0:10, 12:n]  # frames 10 and 11 lost
+    estimate = Trajectory(stamps[keep], est_poses[keep])
+    relocalised = Trajectory(stamps[[20, 25]], np.stack([est_poses[20], truth.T_world_cam[25]]))
+    figures = method_figures(truth, estimate, n, 30.0, relocalised=relocalised)
+    assert figures.tracked_fraction == pytest.approx(28 / 30)
+    assert figures.false_jump_m == pytest.approx(0.4)
+    assert figures.relocalisations == 2
+    # The ATE alignment puts the truth between the two halves: frame 20's pose is off by
+    # about 0.4 m minus the shift, frame 25's by about the shift; one of them is wrong.
+    assert figures.wrong_relocalisations >= 1
+    assert figures.ate_m is not None and figures.ate_m > 0.1
+    assert not figures.passed
+    clean = method_figures(truth, Trajectory(stamps, _poses(n)), n, 30.0)
+    assert clean.passed and clean.ate_m == pytest.approx(0.0, abs=1e-9)
+
+
+def _row(name: str, split: str, ours: MethodFigures, theirs: MethodFigures) -> RobustRow:
+    return RobustRow(name, split, "orbit", "none", "tof", True, 30, ours, theirs)  # type: ignore[arg-type]
+
+
+def test_summaries_count_passes_and_wins_per_set_and_kind() -> None:
+    good = MethodFigures(1.0, 0.01, 0.02, 1, 0, 0.01, 20.0)
+    jumpy = MethodFigures(1.0, 0.01, 0.30, 2, 1, 0.01, 20.0)
+    o3d = MethodFigures(1.0, 0.015, 0.01, 0, 0, None, 30.0)
+    rows = [
+        _row("a", "tuning", good, o3d),
+        _row("b", "validation", good, o3d),
+        _row("c", "validation", jumpy, o3d),
+        _row("d", "validation", MethodFigures(error="RuntimeError: x"), o3d),
+    ]
+    groups = summaries(rows)
+    val = groups["validation"][0]
+    assert (val.sequences, val.passed, val.ahead, val.open3d_passed) == (3, 1, 2, 3)
+    assert (val.false_jumps, val.relocalisations, val.wrong_relocalisations) == (1, 3, 1)
+    assert groups["tuning"][0].passed == 1
+    labels = [g.label for g in groups["validation"]]
+    assert "trajectory orbit" in labels and "symmetric scene" in labels
+    text = summary_markdown(rows)
+    assert "**tuning set**" in text and "**validation set**" in text
+    assert RobustRow.from_dict(json.loads(json.dumps(rows[2].to_dict()))) == rows[2]
+
+
+def test_a_section_is_replaced_not_repeated() -> None:
+    page = replace_section("# Benchmarks\n", "baseline", "one")
+    page = replace_section(page, "new", "two")
+    page = replace_section(page, "baseline", "three")
+    assert page.count("bench robust: baseline -->") == 2  # its begin and end markers
+    assert "three" in page and "one" not in page and "two" in page
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_one_sequence_runs_both_methods(tmp_path: Path) -> None:
+    recipe = draw_recipe(2, trajectory="orbit", texture="noise", depth_model="kinect")
+    row = run_sequence(BenchSequence(recipe, "tuning"), str(tmp_path))
+    assert row.frames >= 24 and row.planeslam.error is None and row.open3d.error is None
+    assert row.planeslam.tracked_fraction is not None and row.planeslam.ate_m is not None
+    assert row.open3d.ate_m is not None and row.planeslam.fps and row.open3d.fps
+    # Rendered once: a second run finds the folder and keeps it.
+    stamp = (tmp_path / recipe.name / "truth.json").stat().st_mtime_ns
+    from planeslam.eval.robust import ensure_rendered
+
+    ensure_rendered(recipe, tmp_path)
+    assert (tmp_path / recipe.name / "truth.json").stat().st_mtime_ns == stamp
