@@ -84,6 +84,8 @@ class BenchSequence:
 
     recipe: Recipe
     split: Split
+    max_frames: int | None = None
+    """Render only the path's first frames (a quick look, tests); None: all."""
 
 
 def benchmark_sequences(count: int = SEQUENCE_COUNT) -> list[BenchSequence]:
@@ -253,10 +255,12 @@ def _truth_at(truth: Trajectory, timestamp: float) -> np.ndarray:
 # --------------------------------------------------------------------------- one job
 
 
-def ensure_rendered(recipe: Recipe, data_dir: Path) -> Path:
+def ensure_rendered(recipe: Recipe, data_dir: Path, max_frames: int | None = None) -> Path:
     """The recipe's dataset folder under `data_dir`, rendered unless it already holds
-    this recipe from this generator version (truth.json's 'rendering' names both)."""
-    root = data_dir / recipe.name
+    this recipe from this generator version (truth.json's 'rendering' names both);
+    `max_frames` renders only the first frames, into a folder of its own."""
+    suffix = "" if max_frames is None else f"-first{max_frames}"
+    root = data_dir / (recipe.name + suffix)
     truth_path = root / "truth.json"
     if truth_path.is_file():
         try:
@@ -266,7 +270,7 @@ def ensure_rendered(recipe: Recipe, data_dir: Path) -> Path:
             made = None
         if made == (json.loads(json.dumps(asdict(recipe))), GENERATOR_VERSION):
             return root
-    write_procedural(recipe, root)
+    write_procedural(recipe, root, max_frames=max_frames)
     return root
 
 
@@ -338,7 +342,7 @@ def run_sequence(
     its one-line error, never stopping the other."""
     start = time.perf_counter()
     recipe = sequence.recipe
-    root = ensure_rendered(recipe, Path(data_dir))
+    root = ensure_rendered(recipe, Path(data_dir), sequence.max_frames)
     frames = 0
     try:
         ours, frames = _run_planeslam(root, overrides)

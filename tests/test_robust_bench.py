@@ -287,3 +287,32 @@ def test_one_sequence_runs_both_methods(tmp_path: Path) -> None:
 
     ensure_rendered(recipe, tmp_path)
     assert (tmp_path / recipe.name / "truth.json").stat().st_mtime_ns == stamp
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_the_benchmark_runs_on_dask_and_writes_its_page(tmp_path: Path) -> None:
+    """Two short sequences on a Dask LocalCluster through the command's library call: rows
+    in order, rows.jsonl written as they come, the page's section written."""
+    from dataclasses import replace
+
+    from planeslam.app.bench_robust import run_robust_command
+
+    sequences = [replace(s, max_frames=4) for s in benchmark_sequences(9)[7:9]]
+    page = tmp_path / "benchmarks.md"
+    page.write_text("# Benchmarks\n\nkept\n", encoding="utf-8")
+    text = run_robust_command(
+        tmp_path / "out",
+        "planeslam bench robust",
+        executor="dask",
+        markdown=page,
+        label="test",
+        with_open3d=False,
+        sequences=sequences,
+    )
+    rows = (tmp_path / "out" / "rows.jsonl").read_text(encoding="utf-8").splitlines()
+    assert len(rows) == 2
+    assert "**validation set**" in text
+    written = page.read_text(encoding="utf-8")
+    assert "kept" in written and "Robust benchmark: test" in written
+    assert "s007-handheld" in written and "s008-robot_steps" in written

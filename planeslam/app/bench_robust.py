@@ -20,6 +20,7 @@ from planeslam.core.config import ConfigLayer
 from planeslam.core.errors import ConfigError
 from planeslam.core.safe_files import write_text_atomic
 from planeslam.eval.robust import (
+    BenchSequence,
     RobustResult,
     RobustRow,
     benchmark_sequences,
@@ -130,12 +131,15 @@ def run_robust_command(
     label: str = "current code",
     with_open3d: bool = True,
     progress: bool = False,
+    sequences: Sequence[BenchSequence] | None = None,
 ) -> str:
-    """Run the benchmark, write robust.md into `out_dir` (and the section `label` of
-    `markdown`), and return the summary tables."""
+    """Run the benchmark (`sequences`, default the fixed list or its first `count`), write
+    robust.md into `out_dir` (and the section `label` of `markdown`), and return the
+    summary tables."""
     if "-->" in label or "\n" in label:
         raise ConfigError(f"--label {label!r}: use one line without '-->'")
-    sequences = benchmark_sequences() if count is None else benchmark_sequences(count)
+    if sequences is None:
+        sequences = benchmark_sequences() if count is None else benchmark_sequences(count)
     if split != "all":
         sequences = [s for s in sequences if s.split == split]
     context = BenchContext.now(command)
