@@ -67,6 +67,34 @@ def as_pose(T: Any, name: str, error: type[PlaneSlamError] = GeometryError) -> n
     return T
 
 
+ROTATION_TOLERANCE = 1e-4
+"""Largest |R R^T - I| entry a pose argument may have; within it the rotation is projected
+back onto SO(3). TUM's 4-decimal quaternions give about 5e-5."""
+
+
+def rigid_pose(
+    T: Any,
+    name: str,
+    error: type[PlaneSlamError] = GeometryError,
+    tolerance: float = ROTATION_TOLERANCE,
+) -> np.ndarray:
+    """T as `as_pose` takes it -> (4, 4) float64 rigid transform, its rotation re-orthonormalised
+    (`orthonormalize_pose`); `error` naming `name` when the rotation block is more than
+    `tolerance` from a rotation (|R R^T - I| entries, det R > 0) or the last row is not
+    (0, 0, 0, 1)."""
+    T = as_pose(T, name, error)
+    R = T[:3, :3]
+    off = float(np.max(np.abs(R @ R.T - np.eye(3))))
+    if off > tolerance or np.linalg.det(R) <= 0:
+        raise error(
+            f"{name}'s rotation block is {off:.1e} from orthonormal (det {np.linalg.det(R):.3f}), "
+            f"expected a rotation within {tolerance:g}"
+        )
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-12):
+        raise error(f"{name}'s last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    return orthonormalize_pose(T)
+
+
 def orthonormalize_pose(T: np.ndarray) -> np.ndarray:
     """(4, 4) or (N, 4, 4) pose with its rotation projected onto SO(3) (nearest rotation by
     SVD): chained products and solvers drift off orthonormality by ~1e-12 per step."""

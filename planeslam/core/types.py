@@ -92,6 +92,10 @@ class PlaneMeasurement:
     covariance: np.ndarray
     """(3, 3) fit covariance in gtsam OrientedPlane3 local coordinates (two tangent-space
     normal components [rad], then d [m])."""
+    correlated_covariance: np.ndarray | None = None
+    """(3, 3) covariance, same coordinates, of the sensor's depth error that is correlated
+    across the plane (calibration, quantisation; `core.plane_fit.patch_covariance`), which
+    the fit, counting pixels as independent, leaves out; None when unknown."""
 
 
 @dataclass(frozen=True)
