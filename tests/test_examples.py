@@ -83,3 +83,13 @@ def test_own_graph_example_on_real_tum_clips(clip: str, noise: float) -> None:
         assert ours < 1.1 * odometry, out
     assert 0.2 < figure(r"degrees of freedom \(([\d.]+)\)", out) < 2.0, out
     assert figure(r"(\d+) indeterminate updates recovered", out) == 0, out
+
+
+@pytest.mark.data
+@pytest.mark.parametrize("clip", ["tum_fr1_desk_9f", "tum_fr1_xyz_10f"])
+def test_frame_by_frame_example_on_real_tum_clips(clip: str) -> None:
+    out = run_example("frame_by_frame.py", "--dataset", str(shared_sequence(clip)))
+    frames = int(clip.rsplit("_", 1)[1].rstrip("f"))
+    assert len(re.findall(r"^frame +\d+: ", out, re.MULTILINE)) == frames, out
+    assert " lost" not in out, out
+    assert figure(r"translation RMSE ([\d.]+) m", out) < 0.02, out
