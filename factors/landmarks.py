@@ -189,6 +189,33 @@ class PlaneLandmarks:
         """Corner landmark id -> its three plane landmark ids."""
         return {k: c.planes for k, c in sorted(self._corners.items())}
 
+    def covariances(self, marginals: Any) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """(plane landmark id -> (3, 3) covariance in OrientedPlane3 tangent coordinates: two
+        normal components [rad^2], then d [m^2]; corner landmark id -> (3, 3) world frame
+        [m^2]) of the landmarks `marginals` holds. marginals: a `gtsam.Marginals`, a
+        `gtsam.ISAM2` or a `RecoveringISAM2` (its `isam`; tangent spaces at its
+        linearisation point, which for OrientedPlane3 sets the normal's basis). Landmarks
+        it does not hold (forgotten, or outside a window) are left out."""
+        source = getattr(marginals, "isam", marginals)
+        if not callable(getattr(source, "marginalCovariance", None)):
+            raise ConfigError(
+                f"marginals is a {type(marginals).__name__}, expected a gtsam.Marginals, "
+                "gtsam.ISAM2 or RecoveringISAM2"
+            )
+
+        def covariance(key: int) -> np.ndarray | None:
+            try:
+                return np.asarray(source.marginalCovariance(key), dtype=np.float64)
+            except (RuntimeError, IndexError, KeyError):  # gtsam: not a variable it holds
+                return None
+
+        planes = {j: covariance(self.keys.plane(j)) for j in self.plane_ids}
+        corners = {k: covariance(self.keys.corner(k)) for k in self.corner_ids}
+        return (
+            {j: c for j, c in planes.items() if c is not None},
+            {k: c for k, c in corners.items() if c is not None},
+        )
+
     def update_estimates(self, values: gtsam.Values) -> None:
         """Refresh the table from optimised values (landmarks absent from `values` keep theirs)."""
         for j in self._planes:

@@ -315,6 +315,16 @@ def test_recovering_isam2_is_plain_isam2_when_nothing_fails(circle):
     assert translation_rmse(T_opt, T_true[:8]) < translation_rmse(
         dead_reckoning(T_true[0], odometry[:7]), T_true[:8]
     )
+    # landmark covariances from the smoother: the batch marginals of the same graph
+    planes, corners = ours_a.covariances(smoother)
+    assert set(planes) == set(ours_a.plane_ids) and set(corners) == set(ours_a.corner_ids)
+    batch = gtsam.Marginals(smoother.graph, smoother.isam.getLinearizationPoint())
+    for key, cov in [(CALLER_KEYS.plane(j), c) for j, c in planes.items()] + [
+        (CALLER_KEYS.corner(k), c) for k, c in corners.items()
+    ]:
+        np.testing.assert_allclose(cov, batch.marginalCovariance(key), rtol=0.05, atol=1e-9)
+    with pytest.raises(planeslam.ConfigError, match="expected a gtsam.Marginals"):
+        ours_a.covariances(smoother.estimate)
 
 
 def test_an_indeterminate_landmark_is_dropped_and_the_run_goes_on(circle, caplog):

@@ -215,6 +215,24 @@ def plane_basis(n: np.ndarray) -> np.ndarray:
     return tangent_basis(n).T
 
 
+def pose_adjoint(T: np.ndarray) -> np.ndarray:
+    """(6, 6) adjoint of the (4, 4) pose T in gtsam's Pose3 tangent order (rotation first,
+    then translation): [[R, 0], [t^ R, R]], so that T Exp(xi) = Exp(Ad_T xi) T."""
+    R, t = T[:3, :3], T[:3, 3]
+    adjoint = np.zeros((6, 6))
+    adjoint[:3, :3] = adjoint[3:, 3:] = R
+    adjoint[3:, :3] = skew(t) @ R
+    return adjoint
+
+
+def compose_covariance(cov_a_b: np.ndarray, T_b_c: np.ndarray, cov_b_c: np.ndarray) -> np.ndarray:
+    """(6, 6) covariance of T_a_c = T_a_b T_b_c from independent (6, 6) covariances of
+    T_a_b and T_b_c, each in its pose's own tangent space (gtsam's right perturbation,
+    rotation first): Ad(T_b_c^-1) cov_a_b Ad(T_b_c^-1)^T + cov_b_c."""
+    adjoint = pose_adjoint(invert_pose(T_b_c))
+    return adjoint @ cov_a_b @ adjoint.T + cov_b_c
+
+
 def skew(a: np.ndarray) -> np.ndarray:
     """(3, 3) cross-product matrix of a (3,): skew(a) @ b = a x b."""
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
