@@ -232,6 +232,8 @@ class SLAM:
         ('found', their 'found_timestamps' [s]), those re-estimated from their neighbours'
         path ('re_estimated') and those left out as lost ('left_out')."""
         self._last_keyframe: int | None = None
+        self._merged_frames: dict[int, int] = {}
+        """Map merge number (`MapPlane.seen_in`) -> the frame index merged."""
         self._odometry_since_keyframe: RelativePose | None = None
         """The caller's odometry composed since the last keyframe (None: not given for
         every frame since)."""
@@ -418,6 +420,30 @@ class SLAM:
             pose_covariance=None if track.lost else self._pose_covariance(T_world_cam),
         )
 
+    def map_record(self) -> dict[str, Any]:
+        """map.json: `Map.to_dict` (schema 'planeslam.map/1', world frame, n . x + d = 0)
+        plus this run's keyframes ('keyframes': frame index, timestamp [s], the map merge
+        number or None, T_world_cam (4, 4) rows, final when `finish` ran) and, per plane,
+        the frame indices of the merges of this run that saw it ('seen_in_frames';
+        'seen_in' counts merges)."""
+        data = self.map.to_dict()
+        for plane in data["planes"]:
+            merges = plane["seen_in"]
+            plane["seen_in_frames"] = sorted(
+                self._merged_frames[m] for m in merges if m in self._merged_frames
+            )
+        merge_of = {k: m for m, k in self._merged_frames.items()}
+        data["keyframes"] = [
+            {
+                "index": k,
+                "timestamp": self._stamps[k],
+                "merge": merge_of.get(k),
+                "T_world_cam": np.asarray(T, dtype=np.float64).tolist(),
+            }
+            for k, T in sorted(self._keyframe_final.items())
+        ]
+        return data
+
     def _pose_covariance(self, T_world_cam: np.ndarray) -> np.ndarray | None:
         """(6, 6) covariance of a frame at T_world_cam: the latest keyframe marginal the
         backend returned, moved to the frame (exactly the marginal when the frame is that
@@ -540,6 +566,7 @@ class SLAM:
                 self._loop_search.submit(query)
             stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
+        self._merged_frames[self.map.frames_merged] = index
         merged = self.map.merge(
             observation,
             T_world_cam,

@@ -7,7 +7,8 @@ Output folder:
                    them), rewritten at the end with the optimised poses;
 - frames.jsonl     one record per frame: tracking path, reason, keyframe, stage ms;
 - run.json         dataset path, backend, command line, version, start time (written first);
-- map.json         the plane-object map (schema planeslam.map/1, world frame);
+- map.json         the plane-object map (schema planeslam.map/1, world frame; with the
+                   keyframes and the frames that saw each plane: `SLAM.map_record`);
 - map_planes.ply   its plane polygons as a mesh coloured by object; map_points.ply its
                    sparse cloud;
 - metrics.json     speed, memory (map against point cloud, with the breakdown), lost frames;
@@ -41,6 +42,7 @@ from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_repor
 from planeslam.eval.run_info import RunInfo, write_run_info
 from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import TumWriter, write_tum
+from planeslam.mapping.json_io import save_json
 from planeslam.mapping.world_map import Map
 from planeslam.slam import (
     SLAM,
@@ -287,8 +289,7 @@ def _write_final(slam: SLAM, out: Path, backend: str, summary: RunSummary) -> Ru
         if slam.frames:
             with atomic_output(out / "trajectory.txt") as tmp:
                 write_tum(tmp, slam.trajectory(), header=f"planeslam {backend}")
-        with atomic_output(out / "map.json") as tmp:
-            slam.map.save(tmp)
+        save_json(slam.map_record(), out / "map.json")  # atomic itself
         with atomic_output(out / "map_planes.ply") as tmp:
             slam.map.write_planes_ply(tmp)
         with atomic_output(out / "map_points.ply") as tmp:
