@@ -493,3 +493,24 @@ def _unnormalised_matrix(q_xyzw: np.ndarray) -> np.ndarray:
             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
         ]
     )
+
+
+def test_front_end_from_a_bare_camera_config_or_a_clear_error():
+    from planeslam.sim.render import render_frame
+
+    scene, trajectory = box_room_circle(frames=24)
+    camera = planeslam.load_config("synthetic").camera
+    front_end = planeslam.FrontEnd(camera)  # the other sections at their defaults
+    assert isinstance(front_end.config, planeslam.FrontEndConfig)
+    depth_m = render_frame(scene, trajectory.T_world_cam[0], camera, np.random.default_rng(0))
+    assert len(front_end.process(depth_m.depth_m).segmentation.planes) >= 4
+    with pytest.raises(planeslam.ConfigError, match="a dict without camera, sensor"):
+        planeslam.FrontEnd({"camera": camera})
+
+
+def test_the_dataset_readers_are_top_level():
+    from planeslam.io.rosbag import RosBagDataset
+    from planeslam.io.sequence import open_dataset
+
+    assert planeslam.RosBagDataset is RosBagDataset and planeslam.open_dataset is open_dataset
+    assert planeslam.TumDataset.__module__ == "planeslam.io.dataset"

@@ -158,4 +158,4 @@ def create_backend(kind: BackendKind | str, config: BackendConfig) -> Backend:
         return MergeBackend()
     from planeslam.backend.worker import Isam2Worker
 
-    return Isam2Worker(config, inline=not config.run_in_process)
+    return Isam2Worker(config, inline=not config.separate_process)

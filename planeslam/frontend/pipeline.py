@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from planeslam.core.camera import DepthNoiseConfig, PixelRays
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.plane_fit import patch_covariance
 from planeslam.core.types import (
     CornerMeasurement,
@@ -23,7 +23,7 @@ from planeslam.core.types import (
     PlaneMeasurement,
 )
 from planeslam.frontend.cloud import check_depth_shape, organized_cloud
-from planeslam.frontend.config import FrontEndSettings
+from planeslam.frontend.config import FrontEndSettings, front_end_settings
 from planeslam.frontend.objects import FrameStructure, build_structure, to_map_dict
 from planeslam.frontend.segmentation import make_segmenter
 from planeslam.frontend.types import Segmentation
@@ -105,7 +105,10 @@ class FrontEnd:
     15 % more speed.
     """
 
-    def __init__(self, config: FrontEndSettings, seed: int = 0) -> None:
+    def __init__(self, config: FrontEndSettings | CameraConfig, seed: int = 0) -> None:
+        """config: a `PlaneSlamConfig` (`load_config`), a `FrontEndConfig`, or a bare
+        `CameraConfig` (the other sections at their defaults)."""
+        config = front_end_settings(config)
         self.config = config
         self.rays = PixelRays.for_camera(config.camera)
         self.rng = np.random.default_rng(seed)
