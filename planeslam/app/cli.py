@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from planeslam import __version__
+from planeslam.app.calibrate import add_calibrate_command
 from planeslam.app.config_command import (
     add_config_command,
     add_config_option,
@@ -383,6 +384,7 @@ COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_config_command,
     add_download_command,
     add_relocalise_command,
+    add_calibrate_command,
 ]
 
 
