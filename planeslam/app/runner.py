@@ -32,6 +32,7 @@ from typing import Protocol
 
 from planeslam.app.dataset_options import TopicOverrides
 from planeslam.app.progress import progress_bar
+from planeslam.app.ros_export import check_bag_destination, write_results_bag
 from planeslam.app.signals import deferred_interrupts
 from planeslam.config import PlaneSlamConfig, explain_config, open_configured
 from planeslam.core.config import ConfigLayer, override_layer
@@ -159,6 +160,7 @@ def run_sequence(
     start_pose: str | None = None,
     map_path: str | Path | None = None,
     localize: bool = False,
+    out_bag: str | Path | None = None,
 ) -> RunResult:
     """Run SLAM on a TUM-layout folder and write the outputs listed in the module docstring.
     `map_path`: a map.json to track in (the first frame placed by relocalisation, not by
@@ -167,11 +169,15 @@ def run_sequence(
     `max_frames`, `every`, `seed` and `start_pose` then override the config's `run`
     section. The saved config.yaml holds the values used, each with its source, and
     reproduces the run as `--config`. `observer` sees every frame; `command` (the
-    command line) goes into run.json; `topics` chooses a bag's topics."""
+    command line) goes into run.json; `topics` chooses a bag's topics. `out_bag`: a new
+    folder for the results as a ROS 2 bag (`planeslam.app.ros_export`), written when the
+    run finishes."""
     root = Path(dataset_dir)
     out = Path(out_dir)
     if localize and map_path is None:
         raise ConfigError("localize needs a map to localise in (--map MAP.json)")
+    if out_bag is not None:
+        check_bag_destination(out_bag)
     flags = {
         "backend": backend,
         "seed": seed,
@@ -229,6 +235,8 @@ def run_sequence(
                 _write_stopped(slam, out, backend, tally)
     assert summary is not None
     metrics = _write_final(slam, out, backend, summary)
+    if out_bag is not None and slam.tracked_frames:
+        write_results_bag(out_bag, slam.trajectory(), slam.map)
     if observer is not None:
         observer.finish(slam)
     evaluation = None
