@@ -344,7 +344,9 @@ class SLAM:
         Raises PlaneSlamError, changing nothing, after `finish` or `close`, and
         DatasetFormatError, changing nothing, for a bad frame: another shape or dtype,
         depth that cannot be metres (raw sensor values, millimetres: the message names the
-        likely depth_scale), greyscale or RGBA colour, a timestamp not after the last."""
+        likely depth_scale), greyscale or RGBA colour, a timestamp not after the last;
+        GeometryError, changing nothing, for odometry that is not a rigid T_prev_cur with
+        a symmetric positive definite information."""
         if self._finished:
             raise PlaneSlamError(
                 "this SLAM has finished (finish or close was called); create a new one"
