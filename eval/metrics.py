@@ -221,11 +221,16 @@ def _backend_figures(slam: SLAM) -> dict[str, float]:
     return figures
 
 
+METRICS_SCHEMA = "planeslam.metrics/1"
+"""The `schema` key of metrics.json (its JSON Schema: `planeslam.schemas`)."""
+
+
 def write_metrics(metrics: RunMetrics, path: str | Path) -> Path:
-    """Write metrics.json (keys of RunMetrics); returns the path."""
+    """Write metrics.json (`schema`, then the keys of RunMetrics); returns the path."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(metrics.to_dict(), indent=2) + "\n", encoding="utf-8")
+    data = {"schema": METRICS_SCHEMA, **metrics.to_dict()}
+    path.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     log.debug("wrote %s", path)
     return path
 
@@ -235,8 +240,11 @@ def read_metrics(path: str | Path) -> RunMetrics:
     path = Path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
+        schema = data.pop("schema", METRICS_SCHEMA)  # files before the key had none
+        if schema != METRICS_SCHEMA:
+            raise EvaluationError(f"{path}: metrics schema {schema!r}, expected {METRICS_SCHEMA!r}")
         return RunMetrics(**data)
     except FileNotFoundError:
         raise EvaluationError(f"{path}: metrics file not found") from None
-    except (json.JSONDecodeError, TypeError) as exc:
+    except (json.JSONDecodeError, TypeError, AttributeError) as exc:
         raise EvaluationError(f"{path}: not a metrics.json ({exc})") from None

@@ -21,6 +21,12 @@ class LandmarkConfig:
     (box_room_circle ATE 2.4 mm with 5e-3, 0.3 mm with 1e-4)."""
     plane_sigma_floor_m: float = 1e-4
     """Added in quadrature to the offset sigma of every plane fit [m]."""
+    plane_correlated_depth: float = 1.0
+    """Sigmas of the sensor's depth error correlated across a plane added to its fit
+    covariance (k^2 times `PlaneMeasurement.correlated_covariance`, from the front end's
+    `sensor` model; `core.plane_fit.patch_covariance`); 0: the fit covariance alone. At 1
+    the optimised graph's error is near its degrees of freedom on real Kinect depth
+    (docs/outside_stack.md)."""
     robust_kernel: Literal["huber", "cauchy"] | None = "huber"
     """None: the built-in OrientedPlane3Factor; 'huber' (default) / 'cauchy': the robust
     CustomFactor (about 10x slower to linearise, 1.4x per iSAM2 update). With the fit
@@ -81,6 +87,11 @@ class LandmarkConfig:
                 isinstance(value, (int, float)) and math.isfinite(value) and value > 0
             ):
                 raise ConfigError(f"landmarks.{name}={value!r}: expected a finite number > 0")
+        k = self.plane_correlated_depth
+        if isinstance(k, bool) or not (isinstance(k, (int, float)) and math.isfinite(k) and k >= 0):
+            raise ConfigError(
+                f"landmarks.plane_correlated_depth={k!r}: expected a finite number >= 0"
+            )
         if self.robust_kernel not in (None, "huber", "cauchy"):
             raise ConfigError(
                 f"landmarks.robust_kernel={self.robust_kernel!r}: "

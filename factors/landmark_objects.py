@@ -66,15 +66,32 @@ class LandmarkObjectMap:
         """Merge one frame (camera frame) under T_world_cam (4, 4); plane_ids: observed
         plane id -> landmark id, corner_ids: observed corner index -> landmark id (as
         `PlaneLandmarks.add_observations` takes them). Observed planes without a landmark
-        id join the map as planes no landmark moves."""
+        id join the map as planes no landmark moves.
+
+        The landmarks' association is the authority: a landmark's plane merges only into
+        that landmark's map plane, and a new landmark's plane is never consolidated into a
+        map plane another landmark owns, so map planes and landmarks stay one-to-one (the
+        map's own consolidation had joined two landmarks of TUM fr1/desk into one map
+        plane, and the next frame seeing both failed). Nothing changes when it raises."""
+        planes, corners = self.map.planes, self.map.corners
         row = {int(p.id): k for k, p in enumerate(observation.segmentation.planes)}
         plane_pairs = [
-            (row[i], self._map_plane[lm]) for i, lm in plane_ids.items() if lm in self._map_plane
+            (row[i], self._map_plane[lm])
+            for i, lm in plane_ids.items()
+            if self._map_plane.get(lm) in planes
         ]
-        corner_pairs = [
-            (k, self._map_corner[lm]) for k, lm in corner_ids.items() if lm in self._map_corner
-        ]
-        merged = self.map.merge(observation, T_world_cam, plane_pairs, corner_pairs, False)
+        corner_pairs: dict[int, int] = {}  # map corner -> observed index, first pair kept
+        for k, lm in sorted(corner_ids.items()):
+            if self._map_corner.get(lm) in corners:
+                corner_pairs.setdefault(self._map_corner[lm], k)
+        merged = self.map.merge(
+            observation,
+            T_world_cam,
+            plane_pairs,
+            [(k, m) for m, k in corner_pairs.items()],
+            reaggregate=False,
+            keep_apart=set(self._plane_landmark),
+        )
         for i, lm in plane_ids.items():
             map_id = merged.planes[row[i]]
             self._map_plane[lm] = map_id

@@ -59,8 +59,14 @@ import gtsam
 import numpy as np
 
 from planeslam.core.errors import AssociationError, ConfigError, GeometryError
-from planeslam.core.geometry import angle_between, as_pose, transform_plane, transform_points
+from planeslam.core.geometry import (
+    angle_between,
+    rigid_pose,
+    transform_plane,
+    transform_points,
+)
 from planeslam.core.types import (
+    CornerMeasurement,
     FrameMeasurements,
     PlaneEstimate,
     PlaneMeasurement,
@@ -108,6 +114,22 @@ class AddedFactors:
 class _Corner:
     point_world: np.ndarray
     planes: tuple[int, int, int]  # plane landmark ids, as first observed
+
+
+@dataclass
+class _Additions:
+    """What one `add_observations` call will add, built before anything is added."""
+
+    factors: list[gtsam.NonlinearFactor] = field(default_factory=list)
+    kinds: list[str] = field(default_factory=list)
+    values: list[tuple[int, Any]] = field(default_factory=list)  # (gtsam key, initial value)
+    planes: dict[int, PlaneEstimate] = field(default_factory=dict)  # new plane landmarks
+    corners: dict[int, _Corner] = field(default_factory=dict)  # new corner landmarks
+    structure_pairs: set[tuple[int, int]] = field(default_factory=set)
+
+    def add(self, factor: gtsam.NonlinearFactor, kind: str) -> None:
+        self.factors.append(factor)
+        self.kinds.append(kind)
 
 
 class PlaneLandmarks:
@@ -166,6 +188,33 @@ class PlaneLandmarks:
     def corner_planes(self) -> dict[int, tuple[int, int, int]]:
         """Corner landmark id -> its three plane landmark ids."""
         return {k: c.planes for k, c in sorted(self._corners.items())}
+
+    def covariances(self, marginals: Any) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """(plane landmark id -> (3, 3) covariance in OrientedPlane3 tangent coordinates: two
+        normal components [rad^2], then d [m^2]; corner landmark id -> (3, 3) world frame
+        [m^2]) of the landmarks `marginals` holds. marginals: a `gtsam.Marginals`, a
+        `gtsam.ISAM2` or a `RecoveringISAM2` (its `isam`; tangent spaces at its
+        linearisation point, which for OrientedPlane3 sets the normal's basis). Landmarks
+        it does not hold (forgotten, or outside a window) are left out."""
+        source = getattr(marginals, "isam", marginals)
+        if not callable(getattr(source, "marginalCovariance", None)):
+            raise ConfigError(
+                f"marginals is a {type(marginals).__name__}, expected a gtsam.Marginals, "
+                "gtsam.ISAM2 or RecoveringISAM2"
+            )
+
+        def covariance(key: int) -> np.ndarray | None:
+            try:
+                return np.asarray(source.marginalCovariance(key), dtype=np.float64)
+            except (RuntimeError, IndexError, KeyError):  # gtsam: not a variable it holds
+                return None
+
+        planes = {j: covariance(self.keys.plane(j)) for j in self.plane_ids}
+        corners = {k: covariance(self.keys.corner(k)) for k in self.corner_ids}
+        return (
+            {j: c for j, c in planes.items() if c is not None},
+            {k: c for k, c in corners.items() if c is not None},
+        )
 
     def update_estimates(self, values: gtsam.Values) -> None:
         """Refresh the table from optimised values (landmarks absent from `values` keep theirs)."""
@@ -280,7 +329,7 @@ class PlaneLandmarks:
             max_corner_distance_m = cfg.associate_max_corner_distance_m
         planes = list(measurements.planes)
         corners = list(measurements.corners) if cfg.use_corners else []
-        T = as_pose(T_world_cam_pred, "T_world_cam_pred")
+        T = rigid_pose(T_world_cam_pred, "T_world_cam_pred")
         map_ids = [j for j in self.plane_ids if j not in self._joined]
         row_of = {j: r for r, j in enumerate(map_ids)}
         map_corner_ids = [
@@ -365,8 +414,15 @@ class PlaneLandmarks:
         missing from it are ignored); corner_ids: index in
         `measurements.corners` -> landmark id (None: no corners).
         A landmark id not yet in the table is created with its initial value (unless
-        `values` already holds its key, i.e. the caller created it). Raises
-        AssociationError when two observed planes (or corners) map to one landmark.
+        `values` already holds its key, i.e. the caller created it).
+
+        All or nothing: every input is checked and every factor built before anything
+        is added, so on an error the caller's graph, values and this table are as they
+        were. T_world_cam within `planeslam.core.geometry.ROTATION_TOLERANCE` of a
+        rotation is re-orthonormalised (TUM's 4-decimal quaternions); further off,
+        GeometryError. AssociationError when
+        two observed planes (or corners) map to one landmark, or ids name observations
+        the measurements lack.
         """
         cfg = self.config
         observation = measurements if isinstance(measurements, FrameObservation) else None
@@ -377,7 +433,7 @@ class PlaneLandmarks:
                 f"measurements is a {type(measurements).__name__}, expected the front end's "
                 "FrameObservation or its FrameMeasurements"
             )
-        T = as_pose(T_world_cam, "T_world_cam")
+        T = rigid_pose(T_world_cam, "T_world_cam")
         plane_ids = {int(i): int(j) for i, j in plane_ids.items()}
         corner_ids = {int(i): int(k) for i, k in (corner_ids or {}).items()}
         _check_one_to_one(plane_ids, "plane_ids")
@@ -389,18 +445,64 @@ class PlaneLandmarks:
                 f"plane_ids names observed planes {unknown} that the measurements do not have "
                 f"(its plane ids: {sorted(planes)})"
             )
-        factors: list[gtsam.NonlinearFactor] = []
-        kinds: list[str] = []
-        new_keys: list[int] = []
-        new_values = gtsam.Values()
-        new_planes: list[int] = []
-        new_corners: list[int] = []
-
-        def add(factor: gtsam.NonlinearFactor, kind: str) -> None:
+        corners = list(measurements.corners)
+        bad = sorted(k for k in corner_ids if not 0 <= k < len(corners))
+        if bad:
+            raise AssociationError(
+                f"corner_ids names corners {bad}: the measurements have {len(corners)}"
+            )
+        if not cfg.use_corners:
+            corner_ids = {}
+        plan = _Additions()
+        self._plan_planes(plan, T, pose_key, values, planes, plane_ids)
+        self._plan_corners(plan, T, pose_key, values, corners, plane_ids, corner_ids)
+        if cfg.use_structure:
+            self._plan_structure(plan, measurements, planes, plane_ids)
+        # The object layer's merge is atomic too: after it nothing below can fail.
+        if observation is not None:
+            self._objects.add(observation, T, plane_ids, corner_ids)
+        for factor in plan.factors:
             graph.add(factor)
-            factors.append(factor)
-            kinds.append(kind)
+        new_values = gtsam.Values()
+        for key, value in plan.values:
+            values.insert(key, value)
+            new_values.insert(key, value)
+        for lm, estimate in plan.planes.items():
+            self._planes[lm] = estimate
+            self._next_plane = max(self._next_plane, lm + 1)
+        for lm, corner in plan.corners.items():
+            self._corners[lm] = corner
+            self._next_corner = max(self._next_corner, lm + 1)
+        self._structure_pairs |= plan.structure_pairs
+        logger.debug(
+            "pose %s: %d factors (%d planes, %d corners, %d structural), %d new landmarks",
+            gtsam.DefaultKeyFormatter(pose_key),
+            len(plan.factors),
+            plan.kinds.count("plane"),
+            plan.kinds.count("corner"),
+            plan.kinds.count("structure"),
+            len(plan.planes) + len(plan.corners),
+        )
+        return AddedFactors(
+            factors=tuple(plan.factors),
+            kinds=tuple(plan.kinds),
+            new_keys=tuple(key for key, _ in plan.values),
+            new_planes=tuple(plan.planes),
+            new_corners=tuple(plan.corners),
+            values=new_values,
+        )
 
+    def _plan_planes(
+        self,
+        plan: _Additions,
+        T: np.ndarray,
+        pose_key: int,
+        values: gtsam.Values,
+        planes: Mapping[int, PlaneMeasurement],
+        plane_ids: Mapping[int, int],
+    ) -> None:
+        """A plane factor per associated plane; new landmarks initialised through T."""
+        cfg = self.config
         for obs_id, lm in sorted(plane_ids.items()):
             plane = planes[obs_id]
             n_cam = np.asarray(plane.n_cam, dtype=np.float64)
@@ -410,108 +512,103 @@ class PlaneLandmarks:
             if lm not in self._planes:
                 n_world, d_world = transform_plane(T, n_cam, float(plane.d_cam))
                 if not values.exists(key):
-                    value = gtsam.OrientedPlane3(np.r_[n_world, d_world])
-                    values.insert(key, value)
-                    new_values.insert(key, value)
-                    new_keys.append(key)
-                self._planes[lm] = PlaneEstimate(n_world, d_world)
-                self._next_plane = max(self._next_plane, lm + 1)
-                new_planes.append(lm)
+                    plan.values.append((key, gtsam.OrientedPlane3(np.r_[n_world, d_world])))
+                plan.planes[lm] = PlaneEstimate(n_world, d_world)
             if cfg.robust_kernel is None:
-                add(plane_factor(z_cam, cov, pose_key, key), "plane")
+                plan.add(plane_factor(z_cam, cov, pose_key, key), "plane")
             else:
-                add(
+                plan.add(
                     robust_plane_factor(z_cam, cov, pose_key, key, cfg.robust_kernel, cfg.robust_k),
                     "plane",
                 )
 
-        if cfg.use_corners and corner_ids:
-            corners = list(measurements.corners)
-            corner_cov = cfg.corner_sigma_m**2 * np.eye(3)
-            for index, lm in sorted(corner_ids.items()):
-                if not 0 <= index < len(corners):
-                    raise AssociationError(
-                        f"corner_ids names corner {index}: the measurements have {len(corners)}"
+    def _plan_corners(
+        self,
+        plan: _Additions,
+        T: np.ndarray,
+        pose_key: int,
+        values: gtsam.Values,
+        corners: list[CornerMeasurement],
+        plane_ids: Mapping[int, int],
+        corner_ids: Mapping[int, int],
+    ) -> None:
+        """A corner factor per associated corner; a new corner landmark also gets a
+        point-on-plane tie to each of its planes that has a landmark."""
+        cfg = self.config
+        corner_cov = cfg.corner_sigma_m**2 * np.eye(3)
+        for index, lm in sorted(corner_ids.items()):
+            corner = corners[index]
+            p_cam = np.asarray(corner.p_cam, dtype=np.float64)
+            key = self.keys.corner(lm)
+            plan.add(corner_factor(p_cam, corner_cov, pose_key, key), "corner")
+            if lm in self._corners:
+                continue
+            tied = tuple(plane_ids.get(i) for i in corner.planes)
+            p_world = transform_points(T, p_cam[None])[0]
+            if not values.exists(key):
+                plan.values.append((key, p_world))
+            plan.corners[lm] = _Corner(p_world, tied)  # type: ignore[arg-type]
+            for plane_lm in tied:
+                if plane_lm is not None:
+                    plan.add(
+                        point_on_plane_factor(
+                            self.keys.plane(plane_lm), key, cfg.point_on_plane_sigma_m
+                        ),
+                        "point_on_plane",
                     )
-                corner = corners[index]
-                p_cam = np.asarray(corner.p_cam, dtype=np.float64)
-                key = self.keys.corner(lm)
-                if lm not in self._corners:
-                    tied = tuple(plane_ids.get(i) for i in corner.planes)
-                    p_world = transform_points(T, p_cam[None])[0]
-                    if not values.exists(key):
-                        values.insert(key, p_world)
-                        new_values.insert(key, p_world)
-                        new_keys.append(key)
-                    self._corners[lm] = _Corner(p_world, tied)  # type: ignore[arg-type]
-                    self._next_corner = max(self._next_corner, lm + 1)
-                    new_corners.append(lm)
-                    add(corner_factor(p_cam, corner_cov, pose_key, key), "corner")
-                    for plane_lm in tied:
-                        if plane_lm is not None:
-                            add(
-                                point_on_plane_factor(
-                                    self.keys.plane(plane_lm), key, cfg.point_on_plane_sigma_m
-                                ),
-                                "point_on_plane",
-                            )
-                else:
-                    add(corner_factor(p_cam, corner_cov, pose_key, key), "corner")
 
-        if cfg.use_structure:
-            tol = math.radians(cfg.structure_tolerance_deg)
-            for edge in measurements.edges:
-                a, b = edge.planes
-                if a not in plane_ids or b not in plane_ids:
-                    continue
-                pair = tuple(sorted((plane_ids[a], plane_ids[b])))
-                if pair[0] == pair[1] or pair in self._structure_pairs:
-                    continue
-                # The measured angle between the normals (both toward the camera, as are
-                # the landmarks'), not the region's dihedral angle `edge.angle_rad`.
-                angle = angle_between(planes[a].n_cam, planes[b].n_cam)
-                factor = structural_factor(
-                    self.keys.plane(pair[0]),
-                    self.keys.plane(pair[1]),
-                    angle,
-                    tol,
-                    cfg.structure_sigma_rad,
-                )
-                if factor is not None:
-                    self._structure_pairs.add(pair)  # type: ignore[arg-type]
-                    add(factor, "structure")
-
-        if observation is not None:
-            self._objects.add(observation, T, plane_ids, corner_ids)
-        logger.debug(
-            "pose %s: %d factors (%d planes, %d corners, %d structural), %d new landmarks",
-            gtsam.DefaultKeyFormatter(pose_key),
-            len(factors),
-            kinds.count("plane"),
-            kinds.count("corner"),
-            kinds.count("structure"),
-            len(new_planes) + len(new_corners),
-        )
-        return AddedFactors(
-            factors=tuple(factors),
-            kinds=tuple(kinds),
-            new_keys=tuple(new_keys),
-            new_planes=tuple(new_planes),
-            new_corners=tuple(new_corners),
-            values=new_values,
-        )
+    def _plan_structure(
+        self,
+        plan: _Additions,
+        measurements: FrameMeasurements,
+        planes: Mapping[int, PlaneMeasurement],
+        plane_ids: Mapping[int, int],
+    ) -> None:
+        """An orthogonality / parallelism factor per observed edge between two landmarks
+        not yet tied."""
+        cfg = self.config
+        tol = math.radians(cfg.structure_tolerance_deg)
+        for edge in measurements.edges:
+            a, b = edge.planes
+            if a not in plane_ids or b not in plane_ids:
+                continue
+            pair = tuple(sorted((plane_ids[a], plane_ids[b])))
+            if pair[0] == pair[1] or pair in self._structure_pairs | plan.structure_pairs:
+                continue
+            # The measured angle between the normals (both toward the camera, as are
+            # the landmarks'), not the region's dihedral angle `edge.angle_rad`.
+            angle = angle_between(planes[a].n_cam, planes[b].n_cam)
+            factor = structural_factor(
+                self.keys.plane(pair[0]),
+                self.keys.plane(pair[1]),
+                angle,
+                tol,
+                cfg.structure_sigma_rad,
+            )
+            if factor is not None:
+                plan.structure_pairs.add(pair)  # type: ignore[arg-type]
+                plan.add(factor, "structure")
 
     def _plane_covariance(self, plane: PlaneMeasurement) -> np.ndarray:
-        """(3, 3) fit covariance (tangent normal [rad], d [m]) plus the floor, symmetrised."""
-        cov = np.asarray(plane.covariance, dtype=np.float64)
-        if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
-            raise GeometryError(
-                f"plane {plane.id}: covariance of shape {cov.shape} is not a finite (3, 3)"
+        """(3, 3) noise of a plane factor (tangent normal [rad], d [m]): the fit covariance,
+        plus k^2 times the correlated depth covariance (k: `plane_correlated_depth`), plus
+        the floor, symmetrised."""
+        cfg = self.config
+        cov = _finite_3x3(plane.covariance, f"plane {plane.id}: covariance")
+        if plane.correlated_covariance is not None and cfg.plane_correlated_depth > 0:
+            correlated = _finite_3x3(
+                plane.correlated_covariance, f"plane {plane.id}: correlated_covariance"
             )
-        floor = np.array(
-            [self.config.plane_sigma_floor_rad] * 2 + [self.config.plane_sigma_floor_m]
-        )
+            cov = cov + cfg.plane_correlated_depth**2 * correlated
+        floor = np.array([cfg.plane_sigma_floor_rad] * 2 + [cfg.plane_sigma_floor_m])
         return 0.5 * (cov + cov.T) + np.diag(floor**2)
+
+
+def _finite_3x3(matrix: np.ndarray, name: str) -> np.ndarray:
+    cov = np.asarray(matrix, dtype=np.float64)
+    if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+        raise GeometryError(f"{name} of shape {cov.shape} is not a finite (3, 3)")
+    return cov
 
 
 def _check_one_to_one(ids: dict[int, int], name: str) -> None:

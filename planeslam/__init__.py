@@ -24,6 +24,7 @@ _EXPORTS = {
     "FrameMeasurements": "planeslam.core.types",
     "FrameObservation": "planeslam.frontend.pipeline",
     "FrontEnd": "planeslam.frontend.pipeline",
+    "FrontEndConfig": "planeslam.frontend.config",
     "GeometryError": "planeslam.core.errors",
     "LandmarkConfig": "planeslam.factors.config",
     "LandmarkKeys": "planeslam.factors.config",
@@ -36,6 +37,8 @@ _EXPORTS = {
     "PlaneMeasurement": "planeslam.core.types",
     "PlaneSlamConfig": "planeslam.config",
     "PlaneSlamError": "planeslam.core.errors",
+    "RelativePose": "planeslam.core.types",
+    "RosBagDataset": "planeslam.io.rosbag",
     "RecoveringISAM2": "planeslam.factors.recovery",
     "ResolvedConfig": "planeslam.config",
     "SLAM": "planeslam.slam",
@@ -44,6 +47,7 @@ _EXPORTS = {
     "TumDataset": "planeslam.io.dataset",
     "explain_config": "planeslam.config",
     "load_config": "planeslam.config",
+    "open_dataset": "planeslam.io.sequence",
     "read_tum": "planeslam.io.trajectory",
     "resolve_config": "planeslam.config",
     "write_tum": "planeslam.io.trajectory",
@@ -63,6 +67,7 @@ __all__ = [
     "FrameMeasurements",
     "FrameObservation",
     "FrontEnd",
+    "FrontEndConfig",
     "GeometryError",
     "LandmarkConfig",
     "LandmarkKeys",
@@ -75,6 +80,8 @@ __all__ = [
     "PlaneMeasurement",
     "PlaneSlamConfig",
     "PlaneSlamError",
+    "RelativePose",
+    "RosBagDataset",
     "RecoveringISAM2",
     "ResolvedConfig",
     "SLAM",
@@ -83,6 +90,7 @@ __all__ = [
     "TumDataset",
     "explain_config",
     "load_config",
+    "open_dataset",
     "read_tum",
     "resolve_config",
     "write_tum",
@@ -112,15 +120,19 @@ if TYPE_CHECKING:
         FrameMeasurements,
         PlaneEstimate,
         PlaneMeasurement,
+        RelativePose,
         TrackingPath,
     )
     from planeslam.factors.config import LandmarkConfig, LandmarkKeys
     from planeslam.factors.landmark_objects import LandmarkObject
     from planeslam.factors.landmarks import PlaneLandmarks
     from planeslam.factors.recovery import RecoveringISAM2
+    from planeslam.frontend.config import FrontEndConfig
     from planeslam.frontend.pipeline import FrameObservation, FrontEnd
     from planeslam.io.config import DatasetConfig
     from planeslam.io.dataset import Frame, TumDataset
+    from planeslam.io.rosbag import RosBagDataset
+    from planeslam.io.sequence import open_dataset
     from planeslam.io.trajectory import Trajectory, read_tum, write_tum
     from planeslam.mapping.config import MapConfig
     from planeslam.mapping.world_map import Map

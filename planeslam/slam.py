@@ -56,9 +56,15 @@ from planeslam.backend.keyframes import nearest_keyframe
 from planeslam.config import PlaneSlamConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError, FrameReadError, PlaneSlamError
 from planeslam.core.frame_checks import check_depth_units, check_rgb, clean_depth
-from planeslam.core.geometry import as_pose, invert_pose, orthonormalize_pose, transform_points
+from planeslam.core.geometry import (
+    as_pose,
+    compose_covariance,
+    invert_pose,
+    orthonormalize_pose,
+    transform_points,
+)
 from planeslam.core.native_tuning import single_native_threads
-from planeslam.core.types import LoopConstraint, TrackingPath
+from planeslam.core.types import LoopConstraint, RelativePose, TrackingPath
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
 from planeslam.io.dataset import Frame
 from planeslam.io.sequence import RgbdDataset
@@ -131,6 +137,12 @@ class FrameResult:
     """The keyframe (its `index`) whose final pose this frame's pose follows in
     `SLAM.trajectory`: the frame itself if a keyframe, else the keyframe nearest in pose
     (None: lost before any keyframe)."""
+    pose_covariance: np.ndarray | None = None
+    """(6, 6) covariance of `T_world_cam` in its tangent space (gtsam's Pose3 order,
+    rotation [rad^2] first, then translation [m^2]): a keyframe's backend marginal once
+    its update is in, else the latest keyframe marginal moved to this frame with one
+    tracking step's noise (the backend's `odometry_sigma_*`). None without a graph
+    (merge backend), before the first update, and for lost frames."""
 
     @property
     def lost(self) -> bool:
@@ -220,6 +232,14 @@ class SLAM:
         ('found', their 'found_timestamps' [s]), those re-estimated from their neighbours'
         path ('re_estimated') and those left out as lost ('left_out')."""
         self._last_keyframe: int | None = None
+        self._merged_frames: dict[int, int] = {}
+        """Map merge number (`MapPlane.seen_in`) -> the frame index merged."""
+        self._odometry_since_keyframe: RelativePose | None = None
+        """The caller's odometry composed since the last keyframe (None: not given for
+        every frame since)."""
+        self._last_covariance: tuple[int, np.ndarray] | None = None
+        """(keyframe index, (6, 6) marginal covariance) of the latest backend update that
+        had one."""
         self._velocity = np.eye(4)
         """Last motion T_prev_cur of tracked frames (constant-velocity prediction)."""
         self._last_tracked: np.ndarray | None = None
@@ -308,15 +328,25 @@ class SLAM:
     # -------------------------------------------------------------------------- frames
 
     def process(
-        self, depth_m: np.ndarray, timestamp: float, rgb: np.ndarray | None = None
+        self,
+        depth_m: np.ndarray,
+        timestamp: float,
+        rgb: np.ndarray | None = None,
+        odometry: RelativePose | tuple[Any, np.ndarray] | None = None,
     ) -> FrameResult:
         """Process one frame: (H, W) float depth [m] (0, NaN and +-inf = invalid), its
         timestamp [s] (after the previous frame's), and optionally (H, W, 3) uint8 RGB (for
-        the RGB-D odometry fallback and map colours).
+        the RGB-D odometry fallback and map colours) and the caller's odometry (wheel, IMU,
+        VIO): (T_prev_cur (4, 4) or gtsam.Pose3, the motion since the previous frame in
+        its camera frame; information (6, 6), rotation first) or a `RelativePose`. The
+        odometry predicts the pose for tracking (instead of constant velocity) and, composed
+        from keyframe to keyframe, becomes a between factor in the iSAM2 graph.
         Raises PlaneSlamError, changing nothing, after `finish` or `close`, and
         DatasetFormatError, changing nothing, for a bad frame: another shape or dtype,
         depth that cannot be metres (raw sensor values, millimetres: the message names the
-        likely depth_scale), greyscale or RGBA colour, a timestamp not after the last."""
+        likely depth_scale), greyscale or RGBA colour, a timestamp not after the last;
+        GeometryError, changing nothing, for odometry that is not a rigid T_prev_cur with
+        a symmetric positive definite information."""
         if self._finished:
             raise PlaneSlamError(
                 "this SLAM has finished (finish or close was called); create a new one"
@@ -328,6 +358,7 @@ class SLAM:
         if rgb is not None:
             rgb = check_rgb(rgb, depth_m.shape)
         timestamp = self._check_timestamp(timestamp)
+        step = None if odometry is None else RelativePose.from_odometry(odometry)
         index = self.frames
         observation = self.front_end.process(depth_m, timestamp)
         stage_ms = dict(observation.stage_ms)
@@ -339,6 +370,13 @@ class SLAM:
 
         t0 = time.perf_counter()
         T_pred = self.predicted_pose()
+        if step is not None and self._last_tracked is not None and self._tracked[-1]:
+            T_pred = self._last_tracked @ step.T_a_b
+        self._odometry_since_keyframe = (
+            None
+            if step is None or self._odometry_since_keyframe is None
+            else self._odometry_since_keyframe.then(step)
+        )
         if index == 0 and not self._in_given_map:
             track = TrackResult(self._T_world_first, TrackingPath.FIRST, "first frame")
             self.tracker.start(observation, self._T_world_first, rgb, depth_m)
@@ -381,7 +419,46 @@ class SLAM:
             rgb=rgb,
             constraints=track.constraints,
             anchor=self._anchor[-1] if self._anchor[-1] >= 0 else None,
+            pose_covariance=None if track.lost else self._pose_covariance(T_world_cam),
         )
+
+    def map_record(self) -> dict[str, Any]:
+        """map.json: `Map.to_dict` (schema 'planeslam.map/1', world frame, n . x + d = 0)
+        plus this run's keyframes ('keyframes': frame index, timestamp [s], the map merge
+        number or None, T_world_cam (4, 4) rows, final when `finish` ran) and, per plane,
+        the frame indices of the merges of this run that saw it ('seen_in_frames';
+        'seen_in' counts merges)."""
+        data = self.map.to_dict()
+        for plane in data["planes"]:
+            merges = plane["seen_in"]
+            plane["seen_in_frames"] = sorted(
+                self._merged_frames[m] for m in merges if m in self._merged_frames
+            )
+        merge_of = {k: m for m, k in self._merged_frames.items()}
+        data["keyframes"] = [
+            {
+                "index": k,
+                "timestamp": self._stamps[k],
+                "merge": merge_of.get(k),
+                "T_world_cam": np.asarray(T, dtype=np.float64).tolist(),
+            }
+            for k, T in sorted(self._keyframe_final.items())
+        ]
+        return data
+
+    def _pose_covariance(self, T_world_cam: np.ndarray) -> np.ndarray | None:
+        """(6, 6) covariance of a frame at T_world_cam: the latest keyframe marginal the
+        backend returned, moved to the frame (exactly the marginal when the frame is that
+        keyframe) with one tracking step's noise otherwise; None before any."""
+        if self._last_covariance is None:
+            return None
+        index, cov = self._last_covariance
+        T_key_cam = invert_pose(self._keyframe_online[index]) @ T_world_cam
+        if np.allclose(T_key_cam, np.eye(4), atol=1e-12):
+            return cov.copy()
+        cfg = self.config.backend
+        sigmas = np.repeat([cfg.odometry_sigma_rot_rad, cfg.odometry_sigma_trans_m], 3)
+        return compose_covariance(cov, T_key_cam, np.diag(sigmas**2))
 
     def _check_timestamp(self, timestamp: float) -> float:
         """`timestamp` [s] as a float: a finite number after the previous frame's."""
@@ -491,6 +568,7 @@ class SLAM:
                 self._loop_search.submit(query)
             stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
+        self._merged_frames[self.map.frames_merged] = index
         merged = self.map.merge(
             observation,
             T_world_cam,
@@ -515,6 +593,7 @@ class SLAM:
                 plane_ids=merged.planes,
                 corner_ids=merged.corners,
                 T_prev_cam=T_prev_cam,
+                odometry=self._odometry_since_keyframe if T_prev_cam is not None else None,
                 joined_planes=tuple(self._joined_planes),
                 loops=loops,
             )
@@ -571,6 +650,8 @@ class SLAM:
         self.tracker.move_keyframe(pending.index, update.T_world_cam)
         self.tracker.correct_previous(correction)
         self._keyframe_final[pending.index] = update.T_world_cam
+        if update.covariance is not None:
+            self._last_covariance = (pending.index, update.covariance)
         self.map.apply_estimates(
             update.planes, update.corners, pending.plane_ids, pending.corner_ids, reaggregate=False
         )
@@ -616,6 +697,7 @@ class SLAM:
         self._tracked.append(not lost)
         if keyframe:  # the first frame always is one, so every frame has an anchor
             self._last_keyframe = index
+            self._odometry_since_keyframe = RelativePose.identity()
             self._set_keyframe_online(index, T_world_cam)
             self._keyframe_final[index] = T_world_cam
         anchor = self._anchor_of(T_world_cam, keyframe, lost)

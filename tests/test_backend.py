@@ -81,10 +81,12 @@ def circle():
 
 
 def backend_config(**landmarks) -> BackendConfig:
-    """Noise models matching the synthetic noise (observe()'s defaults, ODOM_SIGMAS)."""
+    """Noise models matching the synthetic noise (observe()'s defaults, ODOM_SIGMAS): the
+    floors stand for the whole error, no correlated depth term."""
     landmarks = {
         "plane_sigma_floor_rad": 0.002,
         "plane_sigma_floor_m": 0.003,
+        "plane_correlated_depth": 0.0,
         "corner_sigma_m": 0.005,
         **landmarks,
     }

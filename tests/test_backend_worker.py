@@ -46,8 +46,8 @@ def run_loop(root: Path, **backend_overrides):
 
 @pytest.mark.slow
 def test_the_process_gives_what_inline_gives_and_lag_keeps_accuracy(loop: Path) -> None:
-    inline, s_inline, ev_inline = run_loop(loop, run_in_process=False)
-    child, s_child, ev_child = run_loop(loop, run_in_process=True)
+    inline, s_inline, ev_inline = run_loop(loop, separate_process=False)
+    child, s_child, ev_child = run_loop(loop, separate_process=True)
     assert s_child.keyframes == s_inline.keyframes
     np.testing.assert_allclose(
         child.trajectory().T_world_cam, inline.trajectory().T_world_cam, atol=1e-7
@@ -56,7 +56,7 @@ def test_the_process_gives_what_inline_gives_and_lag_keeps_accuracy(loop: Path) 
     assert len(child.backend_result.keyframe_poses) == s_child.keyframes
     figures = slam_run_metrics(child, s_child).backend
     assert figures["factors"] > 0 and figures["update_ms_max"] >= figures["update_ms_median"] > 0
-    _, s_sync, ev_sync = run_loop(loop, run_in_process=False, lag_frames=0)
+    _, s_sync, ev_sync = run_loop(loop, separate_process=False, lag_frames=0)
     for ev in (ev_inline, ev_child, ev_sync):
         assert ev.ate_rmse_m < 0.01
 

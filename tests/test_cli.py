@@ -11,7 +11,7 @@ import pytest
 
 from planeslam.app.cli import main
 
-COMMANDS = ("synth", "demo", "eval", "run", "frame", "bench", "view", "mesh")
+COMMANDS = ("synth", "demo", "eval", "run", "frame", "bench", "view", "mesh", "calibrate")
 
 
 @pytest.mark.parametrize("command", COMMANDS)

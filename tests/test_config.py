@@ -157,3 +157,17 @@ def test_defaults_yaml_lists_every_key_with_the_code_default() -> None:
     assert load_config("defaults") == PlaneSlamConfig()
     written = yaml.safe_load(preset_path("defaults").read_text(encoding="utf-8"))
     assert written == yaml.safe_load(yaml.safe_dump(to_mapping(PlaneSlamConfig())))
+
+
+def test_the_old_name_of_backend_separate_process_is_still_read(tmp_path, caplog):
+    from planeslam.config import load_config
+
+    old = tmp_path / "old.yaml"
+    old.write_text("base: tum_fr1\nbackend:\n  run_in_process: false\n")
+    with caplog.at_level("WARNING"):
+        assert load_config(old).backend.separate_process is False
+    assert "run_in_process is now called separate_process" in caplog.text
+    both = tmp_path / "both.yaml"
+    both.write_text("backend:\n  run_in_process: false\n  separate_process: true\n")
+    with pytest.raises(ConfigError, match="both run_in_process and separate_process"):
+        load_config(both)

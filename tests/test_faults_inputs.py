@@ -359,7 +359,7 @@ def _parallel_planes_only(cfg, frame) -> np.ndarray:
 @pytest.mark.parametrize("backend", ["merge", "isam2"])
 def test_frames_without_depth_or_planes_are_lost_with_a_reason(frames, backend: str) -> None:
     cfg, fs = frames
-    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, run_in_process=False))
+    cfg = dataclasses.replace(cfg, backend=dataclasses.replace(cfg.backend, separate_process=False))
     h, w = fs[0].depth_m.shape
     no_planes = np.random.default_rng(0).uniform(0.8, 3.0, (h, w)).astype(np.float32)
     for case, depth, frontend_reason, reason in [

@@ -222,7 +222,7 @@ class _FlakyISAM2(gtsam.ISAM2):
 
 def _isam2_inline_config(tmp_path: Path) -> Path:
     path = tmp_path / "inline.yaml"
-    path.write_text("backend:\n  run_in_process: false\n")
+    path.write_text("backend:\n  separate_process: false\n")
     return path
 
 

@@ -590,9 +590,30 @@ def test_ply_files_are_readable_by_open3d_and_survive_cleaning(tmp_path, rng):
     assert all(np.allclose(c, box[0]) for c in box) and all(np.allclose(c, room[0]) for c in room)
     assert not np.allclose(box[0], room[0])
     np.testing.assert_allclose(np.asarray(mesh.vertices), m.plane_mesh().vertices, atol=1e-6)
+    faces = ply_faces(tmp_path / "map_planes.ply", len(mesh.vertices))
+    np.testing.assert_array_equal(faces["v"], np.asarray(mesh.triangles))
+    assert faces["plane_id"].tolist() == [
+        pid for pid, r in zip(m.planes, ring_sizes, strict=True) for _ in range(r)
+    ]
+    owner = {o.cls: o.id for o in m.objects}
+    face_object = dict(zip(faces["plane_id"].tolist(), faces["object_id"].tolist(), strict=True))
+    assert {face_object[scene_to_map[s]] for s in (6, 7, 8, 9, 10)} == {owner["box"]}
+    assert {face_object[scene_to_map[s]] for s in range(6)} == {owner["room"]}
     cloud = o3d.io.read_point_cloud(str(m.write_points_ply(tmp_path / "map_points.ply")))
     np.testing.assert_allclose(np.asarray(cloud.points), m.sparse_points, atol=1e-6)
     np.testing.assert_allclose(np.asarray(cloud.colors) * 255, m.sparse_colors, atol=0.5)
+
+
+def ply_faces(path, vertices: int) -> np.ndarray:
+    """The face records of a binary PLY mesh with x y z red green blue vertices, read
+    with the face properties its header declares (list uchar int, then ints)."""
+    data = path.read_bytes()
+    header, body = data.split(b"end_header\n", 1)
+    lines = header.decode("ascii").splitlines()
+    start = lines.index(next(line for line in lines if line.startswith("element face")))
+    names = [line.split()[-1] for line in lines[start + 2 :] if line.startswith("property int")]
+    dtype = np.dtype([("n", "u1"), ("v", "<i4", (3,))] + [(n, "<i4") for n in names])
+    return np.frombuffer(body[vertices * 15 :], dtype=dtype)
 
 
 def top_level_value_bytes(text: str) -> dict[str, int]:

@@ -28,6 +28,7 @@ from test_landmarks import (  # noqa: E402
 
 import planeslam  # noqa: E402
 from planeslam.core.errors import AssociationError, GeometryError, MapError  # noqa: E402
+from planeslam.core.geometry import orthonormalize_pose  # noqa: E402
 from planeslam.factors import (  # noqa: E402
     LandmarkConfig,
     LandmarkKeys,
@@ -314,6 +315,16 @@ def test_recovering_isam2_is_plain_isam2_when_nothing_fails(circle):
     assert translation_rmse(T_opt, T_true[:8]) < translation_rmse(
         dead_reckoning(T_true[0], odometry[:7]), T_true[:8]
     )
+    # landmark covariances from the smoother: the batch marginals of the same graph
+    planes, corners = ours_a.covariances(smoother)
+    assert set(planes) == set(ours_a.plane_ids) and set(corners) == set(ours_a.corner_ids)
+    batch = gtsam.Marginals(smoother.graph, smoother.isam.getLinearizationPoint())
+    for key, cov in [(CALLER_KEYS.plane(j), c) for j, c in planes.items()] + [
+        (CALLER_KEYS.corner(k), c) for k, c in corners.items()
+    ]:
+        np.testing.assert_allclose(cov, batch.marginalCovariance(key), rtol=0.05, atol=1e-9)
+    with pytest.raises(planeslam.ConfigError, match="expected a gtsam.Marginals"):
+        ours_a.covariances(smoother.estimate)
 
 
 def test_an_indeterminate_landmark_is_dropped_and_the_run_goes_on(circle, caplog):
@@ -395,3 +406,111 @@ def test_objects_from_the_landmark_layer_on_rendered_frames():
     for obj in objects.values():
         assert set(obj.planes) <= set(landmarks.plane_ids) and len(obj.planes) >= 3
         assert set(obj.corners) <= set(landmarks.corner_ids)
+
+
+def test_a_landmark_missed_by_association_keeps_its_own_map_plane():
+    """Association hands out new landmarks for planes that already have one (a prediction
+    off by more than the gates); the object layer keeps them apart instead of consolidating
+    them into the old landmarks' map planes, so a frame seeing an old and a new landmark of
+    one plane merges (TUM fr1/desk frames 7-8 had failed with 'plane pairs are not
+    one-to-one')."""
+    from planeslam import FrontEnd, load_config
+    from planeslam.sim.render import render_frame
+
+    scene, trajectory = box_room_circle(frames=24)
+    config = load_config("synthetic")
+    front_end = FrontEnd(config)
+    rng = np.random.default_rng(3)
+    T = trajectory.T_world_cam[0]
+    observations = [
+        front_end.process(render_frame(scene, T, config.camera, rng).depth_m, float(i))
+        for i in range(3)
+    ]
+    planes = [p.id for p in observations[0].segmentation.planes]
+    assert len(planes) >= 2
+    landmarks = PlaneLandmarks(CALLER_KEYS)
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    landmarks.add_observations(graph, values, 0, T, observations[0], {p: p for p in planes})
+    missed = {p: 100 + p for p in planes}  # the same planes again, as new landmarks
+    landmarks.add_observations(graph, values, 1, T, observations[1], missed)
+    one_of_each = {planes[0]: planes[0], planes[1]: 100 + planes[0]}
+    landmarks.add_observations(graph, values, 2, T, observations[2], one_of_each)
+    owners = landmarks._objects._map_plane
+    assert len(set(owners.values())) == len(owners), owners
+
+
+def test_a_failed_add_leaves_the_graph_values_and_table_as_they_were(circle):
+    _, T_true, _, observations = circle
+    landmarks = landmarks_from(observations, T_true, [0])
+    graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    before = (graph.size(), values.size(), landmarks.plane_ids, landmarks.corner_ids)
+    obs = observations[5]
+    plane_ids, corner_ids = landmarks.associate(obs, T_true[5])
+    assert set(plane_ids.values()) - set(landmarks.plane_ids), "the frame should add landmarks"
+    bad_corner = {**corner_ids, len(obs.corners) + 3: 999}
+    with pytest.raises(AssociationError, match=r"corner_ids names corners \[\d+\]"):
+        landmarks.add_observations(graph, values, 5, T_true[5], obs, plane_ids, bad_corner)
+    off = T_true[5].copy()
+    off[:3, :3] = off[:3, :3] @ (np.eye(3) + 1e-3 * np.array([[0, 1, 0], [0, 0, 0], [0, 0, 0]]))
+    with pytest.raises(GeometryError, match="rotation block is .* from orthonormal"):
+        landmarks.add_observations(graph, values, 5, off, obs, plane_ids, corner_ids)
+    bad_plane = dataclasses.replace(obs.planes[0], covariance=np.full((3, 3), np.nan))
+    broken = dataclasses.replace(obs, planes=(bad_plane, *obs.planes[1:]))
+    with pytest.raises(GeometryError, match="covariance of shape"):
+        landmarks.add_observations(graph, values, 5, T_true[5], broken, plane_ids, corner_ids)
+    assert (graph.size(), values.size(), landmarks.plane_ids, landmarks.corner_ids) == before
+
+
+def test_poses_from_four_decimal_quaternions_are_re_orthonormalised(circle):
+    """A rotation made from a quaternion of a TUM file as written (4 decimals, not unit:
+    |R R^T - I| = 4.5e-5) passes both `associate` and `add_observations` (with the object
+    layer), giving the landmarks of the re-orthonormalised pose."""
+    _, T_true, _, observations = circle
+    R_tum = _unnormalised_matrix(np.array([0.7907, 0.4393, -0.1770, -0.3879]))  # fr1/desk row 1
+    T = T_true[3].copy()
+    T[:3, :3] = T[:3, :3] @ R_tum @ orthonormalize_pose(np.pad(R_tum, (0, 1)))[:3, :3].T
+    off = np.abs(T[:3, :3] @ T[:3, :3].T - np.eye(3)).max()
+    assert 1e-6 < off < 1e-4
+    results = []
+    for pose in (T, orthonormalize_pose(T)):
+        landmarks = PlaneLandmarks(LandmarkKeys())
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        ids = landmarks.associate(observations[3], pose)
+        landmarks.add_observations(graph, values, 3, pose, observations[3], *ids)
+        results.append(landmarks.plane_estimates())
+    for j, estimate in results[0].items():
+        np.testing.assert_allclose(results[1][j].n_world, estimate.n_world, atol=1e-15)
+
+
+def _unnormalised_matrix(q_xyzw: np.ndarray) -> np.ndarray:
+    """The rotation formula applied to a quaternion that is not exactly unit (as a reader
+    that does not normalise it would), |R R^T - I| ~ 2 |1 - |q|^2|."""
+    x, y, z, w = q_xyzw
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def test_front_end_from_a_bare_camera_config_or_a_clear_error():
+    from planeslam.sim.render import render_frame
+
+    scene, trajectory = box_room_circle(frames=24)
+    camera = planeslam.load_config("synthetic").camera
+    front_end = planeslam.FrontEnd(camera)  # the other sections at their defaults
+    assert isinstance(front_end.config, planeslam.FrontEndConfig)
+    depth_m = render_frame(scene, trajectory.T_world_cam[0], camera, np.random.default_rng(0))
+    assert len(front_end.process(depth_m.depth_m).segmentation.planes) >= 4
+    with pytest.raises(planeslam.ConfigError, match="a dict without camera, sensor"):
+        planeslam.FrontEnd({"camera": camera})
+
+
+def test_the_dataset_readers_are_top_level():
+    from planeslam.io.rosbag import RosBagDataset
+    from planeslam.io.sequence import open_dataset
+
+    assert planeslam.RosBagDataset is RosBagDataset and planeslam.open_dataset is open_dataset
+    assert planeslam.TumDataset.__module__ == "planeslam.io.dataset"

@@ -52,6 +52,8 @@ def test_wheel_contains_and_imports_the_subpackages(tmp_path: Path) -> None:
         "planeslam/eval/__init__.py",
         "planeslam/configs/tum_fr1.yaml",
         "planeslam/configs/sevenscenes.yaml",
+        "planeslam/schemas/map.schema.json",
+        "planeslam/schemas/metrics.schema.json",
     ):
         assert required in names
     assert not any(n.startswith(("factors/", "eval/", "tests/")) for n in names)

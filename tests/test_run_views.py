@@ -242,6 +242,19 @@ def test_mesh_command_prints_time_and_size(
     assert out.is_file()
 
 
+@pytest.mark.data
+def test_mesh_of_a_short_real_run(tmp_path: Path) -> None:
+    """TUM fr1/desk, 9 frames: 3 keyframes, each surface seen by at most 3 of them (the
+    TSDF had kept only voxels seen more than `min_weight` times: nothing)."""
+    from planeslam.app.runner import run_sequence
+
+    run_sequence(shared_sequence("tum_fr1_desk_9f"), tmp_path, backend="isam2")
+    keyframes = json.loads((tmp_path / "metrics.json").read_text())["keyframes"]
+    assert keyframes <= TsdfConfig().min_weight
+    result = mesh_run(tmp_path, TsdfConfig(voxel_m=0.02))
+    assert result.frames == keyframes and result.vertices > 1000
+
+
 def test_mesh_errors(run_dir: Path, tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="voxel_m must be a positive number"):
         TsdfConfig(voxel_m=0.0)

@@ -100,7 +100,10 @@ def test_run_writes_every_output(box_room: Path, tmp_path: Path) -> None:
     records = [json.loads(line) for line in (out / "frames.jsonl").read_text().splitlines()]
     assert [r["index"] for r in records] == list(range(6))
     reloaded = json.loads(json.dumps(Map.load(out / "map.json").to_dict()))
-    assert reloaded == json.loads((out / "map.json").read_text())
+    written = json.loads((out / "map.json").read_text())
+    assert len(written.pop("keyframes")) == 6  # the run's, beside the map (SLAM.map_record)
+    assert [p.pop("seen_in_frames") for p in written["planes"]]
+    assert reloaded == written
 
 
 def test_interrupted_run_keeps_its_outputs(

@@ -15,6 +15,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from planeslam import __version__
+from planeslam.app.calibrate import add_calibrate_command
 from planeslam.app.config_command import (
     add_config_command,
     add_config_option,
@@ -174,6 +175,13 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--map", type=Path, default=None, help="map.json to track in (relocalised)")
     p.add_argument("--localize", action="store_true", help="with --map: leave the map unchanged")
+    p.add_argument(
+        "--out-bag",
+        type=Path,
+        default=None,
+        help="also write the results as a ROS 2 bag (mcap) in this new folder: /tf, the "
+        "path, plane and object markers",
+    )
     add_viewer_options(p)
     p.set_defaults(func=_cmd_run)
 
@@ -200,6 +208,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
             start_pose=args.start_pose,
             map_path=args.map,
             localize=args.localize,
+            out_bag=args.out_bag,
         )
     print(result.text())
     return 0
@@ -462,6 +471,7 @@ COMMANDS: list[Callable[[argparse._SubParsersAction], None]] = [
     add_config_command,
     add_download_command,
     add_relocalise_command,
+    add_calibrate_command,
 ]
 
 

@@ -7,7 +7,8 @@ Output folder:
                    them), rewritten at the end with the optimised poses;
 - frames.jsonl     one record per frame: tracking path, reason, keyframe, stage ms;
 - run.json         dataset path, backend, command line, version, start time (written first);
-- map.json         the plane-object map (schema planeslam.map/1, world frame);
+- map.json         the plane-object map (schema planeslam.map/1, world frame; with the
+                   keyframes and the frames that saw each plane: `SLAM.map_record`);
 - map_planes.ply   its plane polygons as a mesh coloured by object; map_points.ply its
                    sparse cloud;
 - metrics.json     speed, memory (map against point cloud, with the breakdown), lost frames;
@@ -31,6 +32,7 @@ from typing import Protocol
 
 from planeslam.app.dataset_options import TopicOverrides
 from planeslam.app.progress import progress_bar
+from planeslam.app.ros_export import check_bag_destination, write_results_bag
 from planeslam.app.signals import deferred_interrupts
 from planeslam.config import PlaneSlamConfig, explain_config, open_configured
 from planeslam.core.config import ConfigLayer, override_layer
@@ -41,6 +43,7 @@ from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_repor
 from planeslam.eval.run_info import RunInfo, write_run_info
 from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import TumWriter, write_tum
+from planeslam.mapping.json_io import save_json
 from planeslam.mapping.world_map import Map
 from planeslam.slam import (
     SLAM,
@@ -157,6 +160,7 @@ def run_sequence(
     start_pose: str | None = None,
     map_path: str | Path | None = None,
     localize: bool = False,
+    out_bag: str | Path | None = None,
 ) -> RunResult:
     """Run SLAM on a TUM-layout folder and write the outputs listed in the module docstring.
     `map_path`: a map.json to track in (the first frame placed by relocalisation, not by
@@ -165,11 +169,15 @@ def run_sequence(
     `max_frames`, `every`, `seed` and `start_pose` then override the config's `run`
     section. The saved config.yaml holds the values used, each with its source, and
     reproduces the run as `--config`. `observer` sees every frame; `command` (the
-    command line) goes into run.json; `topics` chooses a bag's topics."""
+    command line) goes into run.json; `topics` chooses a bag's topics. `out_bag`: a new
+    folder for the results as a ROS 2 bag (`planeslam.app.ros_export`), written when the
+    run finishes."""
     root = Path(dataset_dir)
     out = Path(out_dir)
     if localize and map_path is None:
         raise ConfigError("localize needs a map to localise in (--map MAP.json)")
+    if out_bag is not None:
+        check_bag_destination(out_bag)
     flags = {
         "backend": backend,
         "seed": seed,
@@ -227,6 +235,8 @@ def run_sequence(
                 _write_stopped(slam, out, backend, tally)
     assert summary is not None
     metrics = _write_final(slam, out, backend, summary)
+    if out_bag is not None and slam.tracked_frames:
+        write_results_bag(out_bag, slam.trajectory(), slam.map)
     if observer is not None:
         observer.finish(slam)
     evaluation = None
@@ -287,8 +297,7 @@ def _write_final(slam: SLAM, out: Path, backend: str, summary: RunSummary) -> Ru
         if slam.frames:
             with atomic_output(out / "trajectory.txt") as tmp:
                 write_tum(tmp, slam.trajectory(), header=f"planeslam {backend}")
-        with atomic_output(out / "map.json") as tmp:
-            slam.map.save(tmp)
+        save_json(slam.map_record(), out / "map.json")  # atomic itself
         with atomic_output(out / "map_planes.ply") as tmp:
             slam.map.write_planes_ply(tmp)
         with atomic_output(out / "map_points.ply") as tmp:

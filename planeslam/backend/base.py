@@ -21,7 +21,7 @@ import numpy as np
 
 from planeslam.backend.config import BackendConfig
 from planeslam.core.errors import ConfigError
-from planeslam.core.types import FrameMeasurements, LoopConstraint, PlaneEstimate
+from planeslam.core.types import FrameMeasurements, LoopConstraint, PlaneEstimate, RelativePose
 
 
 class BackendKind(str, enum.Enum):
@@ -54,6 +54,9 @@ class KeyframeInput:
     joined_planes: tuple[tuple[int, int], ...] = ()
     """(absorbed, surviving) map plane ids the map joined since the last keyframe
     (`Map.merge_same_segments`): one plane, to be tied in the graph too."""
+    odometry: RelativePose | None = None
+    """The caller's odometry since the previous keyframe (`SLAM.process(odometry=...)`,
+    composed over the frames between), beside tracking's `T_prev_cam`; None: not given."""
     loops: tuple[LoopConstraint, ...] = ()
     """Poses of it or of earlier keyframes (`LoopConstraint.index`: planeslam's loop search
     delivers a keyframe's with the next one, a larger stack's may be later still) against
@@ -74,6 +77,9 @@ class KeyframeUpdate:
     """Corner landmark id -> p_world (3,) [m] after the update, for its corners."""
     update_ms: float
     """Wall-clock ms of the backend's work for this keyframe."""
+    covariance: np.ndarray | None = None
+    """(6, 6) marginal covariance of its pose after the update, in the pose's tangent space
+    (gtsam's Pose3 order, rotation first); None when the backend has none."""
 
 
 @dataclass(frozen=True)
@@ -152,4 +158,4 @@ def create_backend(kind: BackendKind | str, config: BackendConfig) -> Backend:
         return MergeBackend()
     from planeslam.backend.worker import Isam2Worker
 
-    return Isam2Worker(config, inline=not config.run_in_process)
+    return Isam2Worker(config, inline=not config.separate_process)

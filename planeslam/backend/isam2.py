@@ -42,6 +42,7 @@ from planeslam.core.types import (
     LoopConstraint,
     PlaneEstimate,
     PlaneMeasurement,
+    RelativePose,
 )
 from planeslam.factors.landmarks import AddedFactors, PlaneLandmarks
 from planeslam.factors.recovery import RecoveringISAM2, new_isam2
@@ -106,6 +107,19 @@ class Isam2Backend:
             for i, t in self._timestamps.items()
         }
 
+    def pose_covariance(self, index: int) -> np.ndarray | None:
+        """(6, 6) marginal covariance of keyframe `index`'s pose (gtsam's Pose3 tangent
+        order, rotation first), or None when iSAM2 does not hold it (outside the window)
+        or cannot give it."""
+        key = self.keys.pose(index)
+        if not self._smoother.estimate.exists(key):
+            return None
+        try:
+            return np.asarray(self._smoother.isam.marginalCovariance(key), dtype=np.float64)
+        except RuntimeError as exc:
+            logger.debug("no marginal covariance of keyframe %d: %s", index, exc)
+            return None
+
     def plane_estimates(self, ids: Iterable[int] | None = None) -> dict[int, PlaneEstimate]:
         """Plane landmark id -> optimised estimate, world frame (all, or `ids`)."""
         return self.landmarks.plane_estimates(ids)
@@ -128,6 +142,7 @@ class Isam2Backend:
         odometry_sigmas: tuple[float, float] | np.ndarray | None = None,
         joined_planes: Sequence[tuple[int, int]] = (),
         loops: Sequence[LoopConstraint] = (),
+        odometry: RelativePose | None = None,
     ) -> np.ndarray:
         """Add keyframe `index` with its measurements, update iSAM2 -> optimised T_world_cam (4, 4).
 
@@ -145,7 +160,9 @@ class Isam2Backend:
         (`LoopConstraint.index`: planeslam's loop search delivers a keyframe's with the
         next one, a larger stack's may be later still) against older keyframes, each a
         Huber-robust BetweenFactorPose3 (`loop_sigma_*`); an older keyframe outside the
-        window comes back into it held by its own factors.
+        window comes back into it held by its own factors. odometry: the caller's own
+        measured motion since the previous keyframe (wheel, IMU, VIO), one more
+        BetweenFactorPose3 with its information.
         """
         if isinstance(index, bool) or int(index) != index:
             raise ConfigError(f"keyframe index {index!r}: expected an integer")
@@ -180,6 +197,15 @@ class Isam2Backend:
                     gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(odometry_sigmas)),
                 )
             )
+            if odometry is not None:
+                pose_graph.add(
+                    gtsam.BetweenFactorPose3(
+                        prev_key,
+                        pose_key,
+                        gtsam.Pose3(odometry.T_a_b),
+                        gtsam.noiseModel.Gaussian.Information(odometry.information),
+                    )
+                )
         for loop in loops:
             pose_graph.add(self._loop_factor(loop, index))
         landmark_graph = gtsam.NonlinearFactorGraph()

@@ -224,6 +224,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             kf.T_prev_cam,
             joined_planes=kf.joined_planes,
             loops=kf.loops,
+            odometry=kf.odometry,
         )
         return KeyframeUpdate(
             index=kf.index,
@@ -231,6 +232,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             planes=backend.plane_estimates(kf.plane_ids.values()),
             corners=backend.corner_estimates(kf.corner_ids.values()),
             update_ms=backend.update_ms[-1],
+            covariance=backend.pose_covariance(kf.index),
         )
     if isinstance(request, _Finish):
         batch_ms = backend.optimize_batch(request.iterations) if request.iterations else 0.0

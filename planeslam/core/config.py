@@ -10,6 +10,7 @@ dataset camera, overrides).
 from __future__ import annotations
 
 import dataclasses
+import logging
 import re
 import types
 import typing
@@ -21,6 +22,8 @@ from typing import Any, TypeVar
 import yaml
 
 from planeslam.core.errors import ConfigError
+
+logger = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
@@ -37,6 +40,7 @@ def from_mapping(cls: type[T], data: Any, source: str, section: str = "") -> T:
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a mapping of keys, got {type(data).__name__}")
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
+    data = renamed_keys(cls, data, where)
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(
@@ -52,6 +56,29 @@ def from_mapping(cls: type[T], data: Any, source: str, section: str = "") -> T:
         return cls(**kwargs)
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
+
+
+def renamed_keys(cls: type, data: Mapping[str, Any], where: str, deep: bool = False) -> Any:
+    """`data` with the old names of `cls`'s keys (its `RENAMED_KEYS`: old -> new) replaced
+    by the new ones, with a warning; with `deep`, in its sections too. ConfigError when a
+    mapping sets a key under both names."""
+    if not isinstance(data, Mapping):
+        return data
+    for old, new in getattr(cls, "RENAMED_KEYS", {}).items():
+        if old in data:
+            if new in data:
+                raise ConfigError(f"{where}: both {old} and {new}; {old} is {new}'s old name")
+            logger.warning("%s: %s is now called %s", where, old, new)
+            data = {(new if k == old else k): v for k, v in data.items()}
+    if deep:
+        hints = typing.get_type_hints(cls)
+        data = {
+            k: renamed_keys(hints[k], v, f"{where}.{k}", True)
+            if k in hints and dataclasses.is_dataclass(hints[k])
+            else v
+            for k, v in data.items()
+        }
+    return data
 
 
 def _coerce(hint: Any, value: Any, source: str, key: str) -> Any:
@@ -225,9 +252,10 @@ def resolve_layers(cls: type[T], layers: Sequence[ConfigLayer]) -> tuple[T, dict
             raise ConfigError(
                 f"{layer.source}: expected a mapping of keys, got {type(layer.values).__name__}"
             )
-        merged = _merge(merged, layer.values)
+        values = renamed_keys(cls, layer.values, layer.source, deep=True)
+        merged = _merge(merged, values)
         result = from_mapping(cls, merged, layer.source)
-        for key in _keys_set(cls, layer.values):
+        for key in _keys_set(cls, values):
             sources[key] = layer.label
     return result, sources
 

@@ -67,6 +67,34 @@ def as_pose(T: Any, name: str, error: type[PlaneSlamError] = GeometryError) -> n
     return T
 
 
+ROTATION_TOLERANCE = 1e-4
+"""Largest |R R^T - I| entry a pose argument may have; within it the rotation is projected
+back onto SO(3). TUM's 4-decimal quaternions give about 5e-5."""
+
+
+def rigid_pose(
+    T: Any,
+    name: str,
+    error: type[PlaneSlamError] = GeometryError,
+    tolerance: float = ROTATION_TOLERANCE,
+) -> np.ndarray:
+    """T as `as_pose` takes it -> (4, 4) float64 rigid transform, its rotation re-orthonormalised
+    (`orthonormalize_pose`); `error` naming `name` when the rotation block is more than
+    `tolerance` from a rotation (|R R^T - I| entries, det R > 0) or the last row is not
+    (0, 0, 0, 1)."""
+    T = as_pose(T, name, error)
+    R = T[:3, :3]
+    off = float(np.max(np.abs(R @ R.T - np.eye(3))))
+    if off > tolerance or np.linalg.det(R) <= 0:
+        raise error(
+            f"{name}'s rotation block is {off:.1e} from orthonormal (det {np.linalg.det(R):.3f}), "
+            f"expected a rotation within {tolerance:g}"
+        )
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-12):
+        raise error(f"{name}'s last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    return orthonormalize_pose(T)
+
+
 def orthonormalize_pose(T: np.ndarray) -> np.ndarray:
     """(4, 4) or (N, 4, 4) pose with its rotation projected onto SO(3) (nearest rotation by
     SVD): chained products and solvers drift off orthonormality by ~1e-12 per step."""
@@ -185,6 +213,24 @@ def plane_basis(n: np.ndarray) -> np.ndarray:
     """(2, 3) orthonormal in-plane axes u, v (u x v = n) for the unit normal n (3,);
     the rows of `tangent_basis(n)`."""
     return tangent_basis(n).T
+
+
+def pose_adjoint(T: np.ndarray) -> np.ndarray:
+    """(6, 6) adjoint of the (4, 4) pose T in gtsam's Pose3 tangent order (rotation first,
+    then translation): [[R, 0], [t^ R, R]], so that T Exp(xi) = Exp(Ad_T xi) T."""
+    R, t = T[:3, :3], T[:3, 3]
+    adjoint = np.zeros((6, 6))
+    adjoint[:3, :3] = adjoint[3:, 3:] = R
+    adjoint[3:, :3] = skew(t) @ R
+    return adjoint
+
+
+def compose_covariance(cov_a_b: np.ndarray, T_b_c: np.ndarray, cov_b_c: np.ndarray) -> np.ndarray:
+    """(6, 6) covariance of T_a_c = T_a_b T_b_c from independent (6, 6) covariances of
+    T_a_b and T_b_c, each in its pose's own tangent space (gtsam's right perturbation,
+    rotation first): Ad(T_b_c^-1) cov_a_b Ad(T_b_c^-1)^T + cov_b_c."""
+    adjoint = pose_adjoint(invert_pose(T_b_c))
+    return adjoint @ cov_a_b @ adjoint.T + cov_b_c
 
 
 def skew(a: np.ndarray) -> np.ndarray:

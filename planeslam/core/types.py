@@ -7,8 +7,12 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+
+from planeslam.core.errors import GeometryError
+from planeslam.core.geometry import compose_covariance, rigid_pose
 
 
 class TrackingPath(str, enum.Enum):
@@ -92,6 +96,10 @@ class PlaneMeasurement:
     covariance: np.ndarray
     """(3, 3) fit covariance in gtsam OrientedPlane3 local coordinates (two tangent-space
     normal components [rad], then d [m])."""
+    correlated_covariance: np.ndarray | None = None
+    """(3, 3) covariance, same coordinates, of the sensor's depth error that is correlated
+    across the plane (calibration, quantisation; `core.plane_fit.patch_covariance`), which
+    the fit, counting pixels as independent, leaves out; None when unknown."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +158,62 @@ class LoopConstraint:
     """(4, 4) the keyframe's pose in the older keyframe's camera frame."""
     inliers: int
     """Keypoint matches that agree with the points' pose."""
+
+
+@dataclass(frozen=True)
+class RelativePose:
+    """A measured motion (wheel, IMU or visual odometry): frame b's pose in frame a, with
+    its uncertainty."""
+
+    T_a_b: np.ndarray
+    """(4, 4) rigid transform."""
+    covariance: np.ndarray
+    """(6, 6) in T_a_b's own tangent space, gtsam's Pose3 order: rotation [rad^2] first,
+    then translation [m^2]."""
+
+    @classmethod
+    def from_odometry(cls, odometry: Any, name: str = "odometry") -> RelativePose:
+        """A `RelativePose`, or a (T_prev_cur (4, 4) or gtsam.Pose3, information (6, 6))
+        pair -> RelativePose; GeometryError naming `name` for anything else, a pose that is
+        not rigid, or an information matrix that is not symmetric positive definite."""
+        if isinstance(odometry, RelativePose):
+            return odometry
+        if not isinstance(odometry, (tuple, list)) or len(odometry) != 2:
+            raise GeometryError(
+                f"{name} is a {type(odometry).__name__}, expected (T_prev_cur (4, 4), "
+                "information (6, 6)) or a RelativePose"
+            )
+        T = rigid_pose(odometry[0], f"{name}'s T_prev_cur")
+        information = np.asarray(odometry[1], dtype=np.float64)
+        if (
+            information.shape != (6, 6)
+            or not np.all(np.isfinite(information))
+            or not np.allclose(information, information.T, rtol=1e-9, atol=1e-12)
+            or np.linalg.eigvalsh(0.5 * (information + information.T)).min() <= 0
+        ):
+            raise GeometryError(
+                f"{name}'s information of shape {information.shape}: expected a finite "
+                "symmetric positive definite (6, 6), rotation [1/rad^2] first"
+            )
+        covariance = np.linalg.inv(0.5 * (information + information.T))
+        return cls(T, 0.5 * (covariance + covariance.T))
+
+    @classmethod
+    def identity(cls) -> RelativePose:
+        """No motion, known exactly (the start of a chain)."""
+        return cls(np.eye(4), np.zeros((6, 6)))
+
+    @property
+    def information(self) -> np.ndarray:
+        """(6, 6) inverse of `covariance` (LinAlgError for a chain known exactly)."""
+        return np.linalg.inv(self.covariance)
+
+    def then(self, T_b_c: RelativePose) -> RelativePose:
+        """This motion followed by `T_b_c` (independent): T_a_c with its covariance."""
+        return RelativePose(
+            self.T_a_b @ T_b_c.T_a_b,
+            compose_covariance(self.covariance, T_b_c.T_a_b, T_b_c.covariance),
+        )
 
 
 @dataclass(frozen=True)

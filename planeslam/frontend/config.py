@@ -265,3 +265,38 @@ class FrontEndSettings(Protocol):
     def intersections(self) -> IntersectionConfig: ...
     @property
     def objects(self) -> ObjectConfig: ...
+
+
+@dataclass(frozen=True)
+class FrontEndConfig:
+    """The front end's own sections, for a caller without a whole `PlaneSlamConfig`
+    (`FrontEnd(camera)` makes one with the defaults; it has what `FrontEndSettings` asks)."""
+
+    camera: CameraConfig
+    """Intrinsics and depth encoding."""
+    sensor: DepthNoiseConfig = field(default_factory=DepthNoiseConfig)
+    """Depth noise sigma(z) = a + b z^2 (segmentation, intersections, factor noise)."""
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    """Plane segmentation (paper step 2)."""
+    intersections: IntersectionConfig = field(default_factory=IntersectionConfig)
+    """Real plane intersections (paper eq. 1-6)."""
+    objects: ObjectConfig = field(default_factory=ObjectConfig)
+    """Plane graph, trihedral angles, objects and classes (paper 4.2-4.3)."""
+
+
+def front_end_settings(config: FrontEndSettings | CameraConfig) -> FrontEndSettings:
+    """A config with the front end's sections: `config` itself, or for a bare
+    `CameraConfig` a `FrontEndConfig` with it and the defaults; ConfigError otherwise."""
+    if isinstance(config, CameraConfig):
+        return FrontEndConfig(config)
+    missing = [
+        name
+        for name in ("camera", "sensor", "segmentation", "intersections", "objects")
+        if not hasattr(config, name)
+    ]
+    if missing:
+        raise ConfigError(
+            f"front end config is a {type(config).__name__} without {', '.join(missing)}: "
+            "expected a PlaneSlamConfig (load_config), a FrontEndConfig or a CameraConfig"
+        )
+    return config

@@ -14,7 +14,8 @@ from typing import Any
 
 import numpy as np
 
-from planeslam.core.camera import PixelRays
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
+from planeslam.core.plane_fit import patch_covariance
 from planeslam.core.types import (
     CornerMeasurement,
     EdgeMeasurement,
@@ -22,7 +23,7 @@ from planeslam.core.types import (
     PlaneMeasurement,
 )
 from planeslam.frontend.cloud import check_depth_shape, organized_cloud
-from planeslam.frontend.config import FrontEndSettings
+from planeslam.frontend.config import FrontEndSettings, front_end_settings
 from planeslam.frontend.objects import FrameStructure, build_structure, to_map_dict
 from planeslam.frontend.segmentation import make_segmenter
 from planeslam.frontend.types import Segmentation
@@ -48,6 +49,9 @@ class FrameObservation:
     cloud: np.ndarray | None = field(default=None, repr=False)
     """(H, W, 3) float32 organised cloud, camera frame [m], invalid pixels (0, 0, 0)
     (the array the planes were found in, not a copy)."""
+    sensor: DepthNoiseConfig | None = field(default=None, repr=False)
+    """The depth noise model the frame was segmented with (None: unknown); it gives each
+    plane measurement its correlated depth covariance."""
 
     @property
     def reason(self) -> str:
@@ -56,11 +60,21 @@ class FrameObservation:
 
     def measurements(self) -> FrameMeasurements:
         """The typed planes, edges and corners the landmark factors need (no pixels,
-        points, outlines or objects: a few kB)."""
+        points, outlines or objects: a few kB); each plane with its correlated depth
+        covariance when the sensor is known."""
+        sensor = self.sensor
         return FrameMeasurements(
             timestamp=self.timestamp,
             planes=tuple(
-                PlaneMeasurement(p.id, p.normal, float(p.d), p.covariance)
+                PlaneMeasurement(
+                    p.id,
+                    p.normal,
+                    float(p.d),
+                    p.covariance,
+                    None
+                    if sensor is None
+                    else patch_covariance(sensor, p.normal, p.centroid, p.area_m2),
+                )
                 for p in self.segmentation.planes
             ),
             edges=tuple(
@@ -91,7 +105,10 @@ class FrontEnd:
     15 % more speed.
     """
 
-    def __init__(self, config: FrontEndSettings, seed: int = 0) -> None:
+    def __init__(self, config: FrontEndSettings | CameraConfig, seed: int = 0) -> None:
+        """config: a `PlaneSlamConfig` (`load_config`), a `FrontEndConfig`, or a bare
+        `CameraConfig` (the other sections at their defaults)."""
+        config = front_end_settings(config)
         self.config = config
         self.rays = PixelRays.for_camera(config.camera)
         self.rng = np.random.default_rng(seed)
@@ -126,4 +143,5 @@ class FrontEnd:
                 name: 1e3 * (b - a) for name, a, b in zip(STAGES, t[:-1], t[1:], strict=True)
             },
             cloud=cloud,
+            sensor=cfg.sensor,
         )

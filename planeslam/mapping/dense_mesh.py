@@ -36,7 +36,8 @@ class TsdfConfig:
     depth_max_m: float = 3.0
     """Depth beyond this is left out [m] (noisy on structured-light sensors)."""
     min_weight: float = 3.0
-    """A surface needs voxels integrated at least this many times (frames)."""
+    """A surface needs voxels integrated at least this many times (frames), or by every
+    frame when fewer were fused."""
 
     def __post_init__(self) -> None:
         for name in ("voxel_m", "sdf_trunc_voxels", "depth_max_m", "min_weight"):
@@ -101,7 +102,7 @@ def fuse_tsdf(
     """Fuse `frames` (undistorted, depth registered to colour, intrinsics `camera`) into a
     TSDF and extract its mesh with vertex colours and normals. `on_frame` is called after
     each frame (a progress bar). MapError when nothing was fused or nothing was seen often
-    enough (`min_weight`) to make a surface."""
+    enough (`min_weight`, at most the frames fused) to make a surface."""
     o3d = _open3d()
     o3c = o3d.core
     config = config or TsdfConfig()
@@ -134,11 +135,13 @@ def fuse_tsdf(
             on_frame()
     if count == 0:
         raise MapError("no frames to fuse into a mesh")
-    mesh = grid.extract_triangle_mesh(weight_threshold=config.min_weight).to_legacy()
+    min_weight = min(config.min_weight, count)
+    # Open3D keeps voxels whose weight exceeds the threshold; each frame adds 1.
+    mesh = grid.extract_triangle_mesh(weight_threshold=min_weight - 0.5).to_legacy()
     if not len(mesh.vertices):
         raise MapError(
-            f"the TSDF of {count} frames has no surface seen {config.min_weight:g} times "
-            "(too few frames, or depth beyond depth_max_m?)"
+            f"the TSDF of {count} frames has no surface seen {min_weight:g} times "
+            "(depth beyond depth_max_m, or poses that do not overlap?)"
         )
     mesh.compute_vertex_normals()
     return DenseMesh(

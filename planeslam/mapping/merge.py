@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
@@ -29,7 +29,7 @@ import numpy as np
 
 from planeslam.core.errors import AssociationError, MapError
 from planeslam.core.geometry import (
-    as_pose,
+    rigid_pose,
     tangent_basis,
     transform_plane,
     unit,
@@ -63,21 +63,24 @@ def merge_frame(
     T_world_cam: np.ndarray,
     plane_pairs: Sequence[tuple[int, int]] = (),
     corner_pairs: Sequence[tuple[int, int]] = (),
+    keep_apart: Collection[int] = (),
 ) -> MergeResult:
     """Merge one frame (camera frame) into `contents` under T_world_cam (4, 4).
 
     plane_pairs: (observed plane index, map plane id) and corner_pairs: (observed corner
-    index, map corner id), one-to-one. Returns where every observed plane and corner went
-    (matched or new). AssociationError for pairs naming unknown indices / ids or pairing
-    one plane twice; MapError for a bad pose. Nothing changes when it raises.
+    index, map corner id), one-to-one. keep_apart: map plane ids that only a pair may
+    merge into (an unpaired plane is never consolidated into them). Returns where every
+    observed plane and corner went (matched or new). AssociationError for pairs naming
+    unknown indices / ids or pairing one plane twice; MapError for a bad pose. Nothing
+    changes when it raises.
     """
-    T = _checked_pose(T_world_cam)
+    T = rigid_pose(T_world_cam, "T_world_cam", MapError)
     structure = observation.structure
     obs_planes = observation.segmentation.planes
     pairs = _checked_pairs(plane_pairs, len(obs_planes), contents.planes, "plane")
     cpairs = _checked_pairs(corner_pairs, len(structure.corners), contents.corners, "corner")
     _take_frame_up(contents, observation, T)
-    to_map = _merge_planes(contents, observation, T, pairs)
+    to_map = _merge_planes(contents, observation, T, pairs, set(keep_apart))
     id_to_map = {int(p.id): to_map[k] for k, p in enumerate(obs_planes)}
     _merge_edges(contents, observation, T, id_to_map, {to_map[k] for k in pairs})
     corners = _merge_corners(contents, observation, T, id_to_map, cpairs)
@@ -107,9 +110,14 @@ def _take_frame_up(contents: MapContents, observation: FrameObservation, T: np.n
 
 
 def _merge_planes(
-    contents: MapContents, observation: FrameObservation, T: np.ndarray, pairs: dict[int, int]
+    contents: MapContents,
+    observation: FrameObservation,
+    T: np.ndarray,
+    pairs: dict[int, int],
+    keep_apart: set[int],
 ) -> dict[int, int]:
-    """Refit matched planes, add the others; {observed plane index: map plane id}."""
+    """Refit matched planes, add the others (consolidated into a map plane not in
+    `keep_apart` when one is the same plane); {observed plane index: map plane id}."""
     R, t = T[:3, :3], T[:3, 3]
     cos_gate = math.cos(math.radians(contents.config.merge_max_angle_deg))
     to_map: dict[int, int] = {}
@@ -134,7 +142,7 @@ def _merge_planes(
             target = None
         if target is None and contents.config.consolidate:
             targets = targets or contents.plane_arrays()
-            taken = set(to_map.values()) | set(pairs.values())
+            taken = set(to_map.values()) | set(pairs.values()) | keep_apart
             target = _same_plane_segment(contents, targets, p, T, n_w, c_w, outline_w, taken)
         if target is None:
             pid = contents.new_plane_id()
@@ -336,14 +344,6 @@ def _merge_corners(
             )
         merged[k] = cid
     return merged
-
-
-def _checked_pose(T_world_cam: np.ndarray) -> np.ndarray:
-    T = as_pose(T_world_cam, "T_world_cam", MapError)
-    R = T[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) <= 0:
-        raise MapError("T_world_cam's rotation block is not a rotation matrix")
-    return T
 
 
 def _checked_pairs(

@@ -18,7 +18,7 @@ object ids are renumbered 0..K-1 at every re-aggregation.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from pathlib import Path
 from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, Literal
@@ -181,6 +181,7 @@ class Map:
         plane_pairs: Sequence[tuple[int, int]] = (),
         corner_pairs: Sequence[tuple[int, int]] = (),
         reaggregate: bool = True,
+        keep_apart: Collection[int] = (),
     ) -> MergeResult:
         """Merge one frame into the map (paper Fig. 5) and re-aggregate the objects.
 
@@ -188,11 +189,15 @@ class Map:
         plane_pairs: (observed plane index, map plane id) and corner_pairs:
         (observed corner index, map corner id), one-to-one, from data
         association. `reaggregate=False` defers `reaggregate` (objects) to the
-        caller, e.g. to keyframes. Returns where every observed plane and corner went
-        (`MergeResult`, the association the backend uses). AssociationError for pairs naming
-        unknown indices / ids or pairing one plane twice.
+        caller, e.g. to keyframes. keep_apart: map plane ids no unpaired plane is
+        consolidated into (planes another association owns). Returns where every
+        observed plane and corner went (`MergeResult`, the association the backend
+        uses). AssociationError for pairs naming unknown indices / ids or pairing one
+        plane twice.
         """
-        merged = merge_frame(self._contents, observation, T_world_cam, plane_pairs, corner_pairs)
+        merged = merge_frame(
+            self._contents, observation, T_world_cam, plane_pairs, corner_pairs, keep_apart
+        )
         cull_single_view(self._contents, self.config.cull_single_view_after or 0)
         self._revision += 1
         if reaggregate:
