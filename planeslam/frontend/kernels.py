@@ -238,3 +238,103 @@ def link_cells_kernel(
             labels += 1
         comp[i] = label_of_root[root]
     return comp, degree
+
+
+@njit(cache=True, nogil=True)
+def group_sums_kernel(
+    group: np.ndarray, count: np.ndarray, mean: np.ndarray, scatter: np.ndarray, n_groups: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Raw moments of cell groups: group (C,) index per cell (-1 for none), count (C,),
+    mean (C, 3) [m], scatter (C, 3, 3) [m^2] -> (points (G,), first moments (G, 3) [m],
+    second moments about the origin (G, 3, 3) [m^2]), float64, summed in cell order (as
+    numpy.bincount does)."""
+    total = np.zeros(n_groups)
+    first = np.zeros((n_groups, 3))
+    second = np.zeros((n_groups, 3, 3))
+    for c in range(len(group)):
+        g = group[c]
+        if g < 0:
+            continue
+        w = float(count[c])
+        total[g] += w
+        for i in range(3):
+            first[g, i] += w * mean[c, i]
+        for i in range(3):
+            for j in range(i, 3):
+                second[g, i, j] += scatter[c, i, j] + w * mean[c, i] * mean[c, j]
+    for g in range(n_groups):
+        for i in range(3):
+            for j in range(i):
+                second[g, i, j] = second[g, j, i]
+    return total, first, second
+
+
+@njit(cache=True, nogil=True)
+def dense_components_kernel(linked: np.ndarray) -> np.ndarray:
+    """Connected components of the undirected graph of an (N, N) bool matrix (an edge where
+    linked[i, j] or linked[j, i]) -> (N,) labels numbered in the order of each component's
+    first node (as scipy's connected_components)."""
+    n = linked.shape[0]
+    parent = np.arange(n)
+    for i in range(n):
+        for j in range(n):
+            if linked[i, j]:
+                ra, rb = _find(parent, i), _find(parent, j)
+                if ra != rb:
+                    parent[max(ra, rb)] = min(ra, rb)
+    comp = np.full(n, -1, dtype=np.int64)
+    label_of_root = np.full(n, -1, dtype=np.int64)
+    labels = 0
+    for i in range(n):
+        root = _find(parent, i)
+        if label_of_root[root] < 0:
+            label_of_root[root] = labels
+            labels += 1
+        comp[i] = label_of_root[root]
+    return comp
+
+
+@njit(cache=True, nogil=True)
+def flood_fill_kernel(fit: np.ndarray, rows: int, cols: int, seed: int) -> np.ndarray:
+    """Cells 4-connected to `seed` through `fit` (rows * cols,) bool (seed included, whatever
+    its own flag) -> their indices, ascending."""
+    n = rows * cols
+    seen = np.zeros(n, dtype=np.bool_)
+    stack = np.empty(n, dtype=np.int64)
+    seen[seed] = True
+    stack[0] = seed
+    top = 1
+    found = 1
+    while top > 0:
+        top -= 1
+        a = stack[top]
+        r, c = a // cols, a % cols
+        for k in range(4):
+            if k == 0:
+                if c == 0:
+                    continue
+                b = a - 1
+            elif k == 1:
+                if c + 1 >= cols:
+                    continue
+                b = a + 1
+            elif k == 2:
+                if r == 0:
+                    continue
+                b = a - cols
+            else:
+                if r + 1 >= rows:
+                    continue
+                b = a + cols
+            if fit[b] and not seen[b]:
+                seen[b] = True
+                stack[top] = b
+                top += 1
+                found += 1
+    out = np.empty(found, dtype=np.int64)
+    k = 0
+    for a in range(n):
+        if seen[a]:
+            out[k] = a
+            k += 1
+    return out

@@ -55,7 +55,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
-from scipy.sparse.csgraph import connected_components
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import GeometryError
@@ -63,7 +62,10 @@ from planeslam.core.plane_fit import merge_moments, plane_from_moments, smallest
 from planeslam.frontend.config import SegmentationConfig
 from planeslam.frontend.kernels import (
     assign_pixels_kernel,
+    dense_components_kernel,
+    flood_fill_kernel,
     gather_planes_kernel,
+    group_sums_kernel,
     link_cells_kernel,
 )
 from planeslam.frontend.segment_common import (
@@ -368,8 +370,7 @@ def _grow_regions(
             fit = np.zeros(rows * cols, dtype=bool)
             fit[cand] = _fitting(cells, cand, region, cfg)
             fit[seed] = True
-            comp, _ = ndimage.label(fit.reshape(rows, cols))
-            new = np.flatnonzero(comp.ravel() == comp.ravel()[seed])
+            new = flood_fill_kernel(fit, rows, cols, seed)
             if len(new) == len(grown):
                 break
             grown = new
@@ -385,21 +386,9 @@ def _group_planes(cells: _Cells, group: np.ndarray, n_groups: int):
 
     group: (C,) group index per cell, -1 for none. Returns (count (G,), centroid (G, 3),
     scatter (G, 3, 3), normal (G, 3) toward the camera, d (G,))."""
-    member = group >= 0
-    g = group[member]
-    w = cells.count[member].astype(np.float64)
-    mean = cells.mean[member]
-    count = np.bincount(g, weights=w, minlength=n_groups)
-    first = np.stack(
-        [np.bincount(g, weights=w * mean[:, i], minlength=n_groups) for i in range(3)], 1
+    count, first, second = group_sums_kernel(
+        group, cells.count, cells.mean, cells.scatter, n_groups
     )
-    raw = cells.scatter[member] + w[:, None, None] * mean[:, :, None] * mean[:, None, :]
-    second = np.empty((n_groups, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            second[:, i, j] = second[:, j, i] = np.bincount(
-                g, weights=raw[:, i, j], minlength=n_groups
-            )
     safe = np.maximum(count, 1.0)
     centroid = first / safe[:, None]
     scatter = second - safe[:, None, None] * centroid[:, :, None] * centroid[:, None, :]
@@ -478,7 +467,8 @@ def _merge_coplanar(
     sigma = noise.sigma_m(c[:, 2])
     fits = rms2 <= (cfg.organized.merge_max_rms_sigmas * sigma[None, :]) ** 2
     same = fits & fits.T & (n @ n.T >= math.cos(math.radians(cfg.organized.coplanar_max_angle_deg)))
-    ncomp, comp = connected_components(same, directed=False)
+    comp = dense_components_kernel(same)
+    ncomp = int(comp.max()) + 1
     if ncomp == len(regions):
         return regions
     merged = []
