@@ -173,6 +173,23 @@ def _find(parent: np.ndarray, i: int) -> int:
 
 
 @njit(cache=True, nogil=True)
+def _component_labels(parent: np.ndarray) -> np.ndarray:
+    """(N,) component label of each node of a union-find forest, numbered in the order of
+    each component's first node (as scipy's connected_components)."""
+    n = len(parent)
+    comp = np.full(n, -1, dtype=np.int64)
+    label_of_root = np.full(n, -1, dtype=np.int64)
+    labels = 0
+    for i in range(n):
+        root = _find(parent, i)
+        if label_of_root[root] < 0:
+            label_of_root[root] = labels
+            labels += 1
+        comp[i] = label_of_root[root]
+    return comp
+
+
+@njit(cache=True, nogil=True)
 def link_cells_kernel(
     rows: int,
     cols: int,
@@ -228,16 +245,7 @@ def link_cells_kernel(
             ra, rb = _find(parent, a), _find(parent, b)
             if ra != rb:
                 parent[max(ra, rb)] = min(ra, rb)
-    comp = np.full(n, -1, dtype=np.int64)
-    label_of_root = np.full(n, -1, dtype=np.int64)
-    labels = 0
-    for i in range(n):
-        root = _find(parent, i)
-        if label_of_root[root] < 0:
-            label_of_root[root] = labels
-            labels += 1
-        comp[i] = label_of_root[root]
-    return comp, degree
+    return _component_labels(parent), degree
 
 
 @njit(cache=True, nogil=True)
@@ -282,16 +290,7 @@ def dense_components_kernel(linked: np.ndarray) -> np.ndarray:
                 ra, rb = _find(parent, i), _find(parent, j)
                 if ra != rb:
                     parent[max(ra, rb)] = min(ra, rb)
-    comp = np.full(n, -1, dtype=np.int64)
-    label_of_root = np.full(n, -1, dtype=np.int64)
-    labels = 0
-    for i in range(n):
-        root = _find(parent, i)
-        if label_of_root[root] < 0:
-            label_of_root[root] = labels
-            labels += 1
-        comp[i] = label_of_root[root]
-    return comp
+    return _component_labels(parent)
 
 
 @njit(cache=True, nogil=True)
