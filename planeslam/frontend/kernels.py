@@ -337,3 +337,80 @@ def flood_fill_kernel(fit: np.ndarray, rows: int, cols: int, seed: int) -> np.nd
             out[k] = a
             k += 1
     return out
+
+
+@njit(cache=True, nogil=True)
+def cells_from_cloud_kernel(
+    cloud: np.ndarray, rows: int, cols: int, cell: int, rx: np.ndarray, ry: np.ndarray, limit: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An (H, W, 3) float32 organised cloud in cell-major layout: cells of cell x cell
+    pixels, rows x cols of them (zero padding past the image), pixels row by row in a cell.
+
+    rx, ry (C, P) float32: the z=1 rays in that layout; limit: the float32 max depth [m].
+    Returns x, y, z (C, P) float32 [m] (x = z rx, y = z ry) and valid (C, P) bool
+    (0 < z <= limit). When some z exceeds limit every invalid pixel's z is set to 0."""
+    height, width = cloud.shape[0], cloud.shape[1]
+    npix = cell * cell
+    cells = rows * cols
+    zero = np.float32(0.0)
+    any_far = False
+    for v in range(height):
+        for u in range(width):
+            if cloud[v, u, 2] > limit:
+                any_far = True
+    x = np.empty((cells, npix), dtype=np.float32)
+    y = np.empty((cells, npix), dtype=np.float32)
+    z = np.empty((cells, npix), dtype=np.float32)
+    valid = np.empty((cells, npix), dtype=np.bool_)
+    for r in range(rows):
+        for c in range(cols):
+            k = r * cols + c
+            for i in range(cell):
+                v = r * cell + i
+                for j in range(cell):
+                    u = c * cell + j
+                    p = i * cell + j
+                    zz = cloud[v, u, 2] if v < height and u < width else zero
+                    ok = zz > zero and not zz > limit
+                    if any_far and not ok:
+                        zz = zero
+                    z[k, p] = zz
+                    valid[k, p] = ok
+                    x[k, p] = zz * rx[k, p]
+                    y[k, p] = zz * ry[k, p]
+    return x, y, z, valid
+
+
+@njit(cache=True, nogil=True)
+def plane_sums_kernel(
+    xyz: np.ndarray, bounds: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Sums over each plane's inliers xyz[:, bounds[i]:bounds[i+1]] ((3, N) float64 [m]):
+    (first moments (P, 3) [m], second moments about the origin (P, 3, 3) [m^2], sum of
+    z^3 (P,) [m^3])."""
+    n = len(bounds) - 1
+    first = np.zeros((n, 3))
+    second = np.zeros((n, 3, 3))
+    z3 = np.zeros(n)
+    for k in range(n):
+        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = szzz = 0.0
+        for m in range(bounds[k], bounds[k + 1]):
+            px, py, pz = xyz[0, m], xyz[1, m], xyz[2, m]
+            sx += px
+            sy += py
+            sz += pz
+            sxx += px * px
+            sxy += px * py
+            sxz += px * pz
+            syy += py * py
+            syz += py * pz
+            zz = pz * pz
+            szz += zz
+            szzz += zz * pz
+        first[k, 0], first[k, 1], first[k, 2] = sx, sy, sz
+        second[k, 0, 0], second[k, 1, 1], second[k, 2, 2] = sxx, syy, szz
+        second[k, 0, 1] = second[k, 1, 0] = sxy
+        second[k, 0, 2] = second[k, 2, 0] = sxz
+        second[k, 1, 2] = second[k, 2, 1] = syz
+        z3[k] = szzz
+    return first, second, z3

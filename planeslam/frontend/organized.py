@@ -62,6 +62,7 @@ from planeslam.core.plane_fit import merge_moments, plane_from_moments, smallest
 from planeslam.frontend.config import SegmentationConfig
 from planeslam.frontend.kernels import (
     assign_pixels_kernel,
+    cells_from_cloud_kernel,
     dense_components_kernel,
     flood_fill_kernel,
     gather_planes_kernel,
@@ -530,18 +531,15 @@ def _segment_organized(
     outline_stride: int = OUTLINE_STRIDE,
 ) -> Segmentation:
     t0 = time.perf_counter()
-    z = grid.to_cells(cloud[..., 2])
-    valid = z > 0
-    far = z > cfg.max_depth_m
-    if far.any():  # a cloud made with a larger max_depth_m
-        valid &= ~far
-        z = np.where(valid, z, np.float32(0.0))
+    # Points beyond max_depth_m (a cloud made with a larger one) are invalid too.
+    limit = np.float32(cfg.max_depth_m)
+    x, y, z, valid = cells_from_cloud_kernel(
+        cloud, grid.rows, grid.cols, grid.cell, grid.rx, grid.ry, limit
+    )
     if not valid.any():
         return empty_segmentation(
             grid.height, grid.width, no_valid_reason(depth_m, cfg.max_depth_m)
         )
-    x = z * grid.rx
-    y = z * grid.ry
     t1 = time.perf_counter()
     cells = _cell_fits(x, y, z, valid, cfg, noise)
     t2 = time.perf_counter()
