@@ -381,36 +381,34 @@ def cells_from_cloud_kernel(
     return x, y, z, valid
 
 
-@njit(cache=True, nogil=True)
-def plane_sums_kernel(
-    xyz: np.ndarray, bounds: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Sums over each plane's inliers xyz[:, bounds[i]:bounds[i+1]] ((3, N) float64 [m]):
-    (first moments (P, 3) [m], second moments about the origin (P, 3, 3) [m^2], sum of
-    z^3 (P,) [m^3])."""
-    n = len(bounds) - 1
-    first = np.zeros((n, 3))
-    second = np.zeros((n, 3, 3))
-    z3 = np.zeros(n)
-    for k in range(n):
-        sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = szzz = 0.0
-        for m in range(bounds[k], bounds[k + 1]):
-            px, py, pz = xyz[0, m], xyz[1, m], xyz[2, m]
-            sx += px
-            sy += py
-            sz += pz
-            sxx += px * px
-            sxy += px * py
-            sxz += px * pz
-            syy += py * py
-            syz += py * pz
-            zz = pz * pz
-            szz += zz
-            szzz += zz * pz
-        first[k, 0], first[k, 1], first[k, 2] = sx, sy, sz
-        second[k, 0, 0], second[k, 1, 1], second[k, 2, 2] = sxx, syy, szz
-        second[k, 0, 1] = second[k, 1, 0] = sxy
-        second[k, 0, 2] = second[k, 2, 0] = sxz
-        second[k, 1, 2] = second[k, 2, 1] = syz
-        z3[k] = szzz
-    return first, second, z3
+_WARM = False
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel for the argument types the front
+    end passes, on tiny inputs; once per process. The first run on a machine compiles for
+    some seconds; later processes load the cached machine code in well under a second."""
+    global _WARM
+    if _WARM:
+        return
+    f32, n = np.float32, 2
+    img = np.ones((n, n), f32)
+    back_project_kernel(img, np.ones((n, n, 3), f32), f32(6.0))
+    rx = np.zeros((1, n * n), f32)
+    strided = np.ones((2 * n, 2 * n, 3), f32)[::2, ::2]  # segment()'s pixel_stride > 1
+    cells_from_cloud_kernel(strided, 1, 1, n, rx, rx, f32(6.0))
+    x, y, z, valid = cells_from_cloud_kernel(np.ones((n, n, 3), f32), 1, 1, n, rx, rx, f32(6.0))
+    cand = np.zeros((1, 2), np.int32)
+    ncand = np.ones(1, np.int64)
+    normals, ds = np.ones((1, 3), f32), np.ones(1, f32)
+    labels, _ = assign_pixels_kernel(x, y, z, valid, cand, ncand, normals, ds, f32(1.0), f32(0.0))
+    remap = np.array([-1, 0], np.int32)
+    gather_planes_kernel(x, y, z, labels, np.ones(1, np.bool_), remap, 1)
+    planar = np.ones(n, np.bool_)
+    normal, mean, scatter = np.ones((n, 3)), np.ones((n, 3)), np.ones((n, 3, 3))
+    count, vec = np.ones(n, np.int64), np.ones(n)
+    link_cells_kernel(1, n, planar, normal, vec, mean, scatter, count, vec, vec, 0.1, 1.0)
+    group_sums_kernel(np.zeros(n, np.int64), count, mean, scatter, 1)
+    dense_components_kernel(np.ones((n, n), np.bool_))
+    flood_fill_kernel(planar, 1, n, 0)
+    _WARM = True
