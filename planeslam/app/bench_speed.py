@@ -2,20 +2,20 @@
 normalised by a fixed reference workload, so two runs made in different hours (or on a
 machine shared with other jobs) compare.
 
-Each of `repeats` rounds times, in this order, the reference workload, then for every
-dataset (a TUM folder such as 7-Scenes, and the built-in synthetic scene):
+Each of `repeats` rounds times, for every dataset (a TUM folder such as 7-Scenes, and
+the built-in synthetic scene):
 - front end: `FrontEnd.process` on frames held in memory (reading excluded), one
   untimed warm-up frame first;
 - whole system: `run_frames` on a fresh `SLAM` (what `planeslam run` does, outputs
   not written): frames read one ahead on a second thread, the backend in its worker
   process, the final optimisation included, start-up excluded;
-and the reference once more after the last round. Round r's reference time is the mean
-of the reference timed before and after it.
+and the reference workload before the first run and after every run: each run's
+reference time is the mean of the two timed around it (the load of the minute).
 
 Figures per workload, each the median over the rounds:
 - fps = frames / seconds;
 - ms/frame = 1000 seconds / frames;
-- ref units/frame = (seconds / frames) / (round's reference seconds): the cost of a
+- ref units/frame = (seconds / frames) / (the run's reference seconds): the cost of a
   frame in reference workloads; it moves with the code, much less with the hour.
 
 The reference workload is pure numpy and OpenCV, fixed in size and seed, with the
@@ -150,7 +150,7 @@ class WorkloadTiming:
     seconds: tuple[float, ...]
     """Wall-clock seconds of each round."""
     reference_s: tuple[float, ...]
-    """The reference workload's seconds in each round (mean of the two bracketing it)."""
+    """The reference workload's seconds around each round's run (mean of the two)."""
 
     @property
     def fps_runs(self) -> tuple[float, ...]:
@@ -208,7 +208,7 @@ class SpeedResult:
     machine: MachineInfo
     repeats: int
     reference_s: tuple[float, ...]
-    """Every timing of the reference workload (repeats + 1), in order."""
+    """Every timing of the reference workload (1 + one per run), in order."""
     workloads: tuple[WorkloadTiming, ...]
 
     def ratios(self) -> dict[str, float]:
@@ -249,7 +249,7 @@ class SpeedResult:
         ratios = ", ".join(f"{k} {v:.2f}" for k, v in self.ratios().items())
         foot = [
             "fps, ms/frame, ref units/frame: medians over the rounds; ref units/frame = "
-            "(seconds per frame) / (the round's reference seconds), lower is faster.",
+            "(seconds per frame) / (the reference seconds around the run), lower is faster.",
         ]
         if ratios:
             foot.append(f"whole system fps / front end fps: {ratios}")
@@ -442,8 +442,8 @@ def bench_speed(
 ) -> SpeedResult:
     """Time the front end and the whole system on each dataset folder (its first `frames`
     frames) and, with `synthetic`, on the built-in synthetic scene (rendered once into
-    `cache_dir`), `repeats` rounds in one sitting, with the reference workload before
-    every round and after the last. See the module docstring for the figures."""
+    `cache_dir`), `repeats` rounds in one sitting, with the reference workload before the
+    first run and after every run. See the module docstring for the figures."""
 
     if frames < 1:
         raise ConfigError(f"bench speed: --frames must be >= 1, got {frames}")
@@ -459,22 +459,25 @@ def bench_speed(
     sources = [_open_source(f, frames, config, overrides) for f in folders]
     load_before = _loadavg()
     reference = [reference_workload()]
-    raw: dict[tuple[str, str], list[tuple[float, int]]] = {}
+    # (kind, dataset) -> per round: (seconds, frames, reference seconds around the run)
+    raw: dict[tuple[str, str], list[tuple[float, int, float]]] = {}
     for r in range(repeats):
         for source in sources:
             for kind, timer in ((FRONT_END, _time_front_end), (WHOLE_SYSTEM, _time_whole_system)):
                 if progress:
                     log.info("round %d/%d: %s %s", r + 1, repeats, kind, source.name)
-                raw.setdefault((kind, source.name), []).append(timer(source))
-        reference.append(reference_workload())
-    per_round = tuple(0.5 * (a + b) for a, b in zip(reference[:-1], reference[1:], strict=True))
+                seconds, frames_done = timer(source)
+                reference.append(reference_workload())
+                around = 0.5 * (reference[-2] + reference[-1])
+                raw.setdefault((kind, source.name), []).append((seconds, frames_done, around))
     workloads = []
     for (kind, name), runs in raw.items():
-        counts = {n for _, n in runs}
+        counts = {n for _, n, _ in runs}
         if len(counts) != 1:
             raise DatasetFormatError(f"{name}: rounds processed different frame counts {counts}")
+        seconds = tuple(s for s, _, _ in runs)
         workloads.append(
-            WorkloadTiming(kind, name, counts.pop(), tuple(s for s, _ in runs), per_round)
+            WorkloadTiming(kind, name, counts.pop(), seconds, tuple(a for _, _, a in runs))
         )
     return SpeedResult(
         command=command,

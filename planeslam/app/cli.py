@@ -326,7 +326,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         description="Time the front end (frames in memory) and the whole system (as "
         "`planeslam run`, outputs not written) on each DATASET and on the built-in synthetic "
         "scene, in rounds within one sitting, with a fixed numpy/OpenCV reference workload "
-        "timed before every round and after the last. Prints medians over the rounds, the "
+        "timed before the first run and after every run. Prints medians over the rounds, the "
         "load average before and after, and reference units per frame (seconds per frame / "
         "reference seconds), which compare across hours. Default DATASET: "
         "../shared/data/7scenes_redkitchen_1000f when present.",
