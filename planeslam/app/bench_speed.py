@@ -475,9 +475,9 @@ def bench_speed(
         counts = {n for _, n, _ in runs}
         if len(counts) != 1:
             raise DatasetFormatError(f"{name}: rounds processed different frame counts {counts}")
-        seconds = tuple(s for s, _, _ in runs)
+        run_s = tuple(s for s, _, _ in runs)
         workloads.append(
-            WorkloadTiming(kind, name, counts.pop(), seconds, tuple(a for _, _, a in runs))
+            WorkloadTiming(kind, name, counts.pop(), run_s, tuple(a for _, _, a in runs))
         )
     return SpeedResult(
         command=command,
