@@ -69,6 +69,8 @@ def test_markdown_columns_are_the_documented_medians(tiny_result, tmp_path):
         assert row["reference s"] == f"{statistics.median(AROUND[w.kind]):.3f}"
         ref_units = statistics.median(p / r for p, r in zip(per_frame, AROUND[w.kind], strict=True))
         assert row["ref units/frame"] == f"{ref_units:.5f}"
+        cpu_ms = statistics.median(1e3 * c / w.frames for c in w.cpu_s)
+        assert row["CPU ms/frame"] == f"{cpu_ms:.2f}" and all(c > 0 for c in w.cpu_s)
         assert row["commit"] == m.commit and row["machine"] == f"{m.cpu_model}, {m.cores} cores"
         assert row["load before"] == " ".join(f"{x:.2f}" for x in m.load_before)
     # Appending again grows the same table: one header, twice the rows.

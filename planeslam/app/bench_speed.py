@@ -16,7 +16,10 @@ Figures per workload, each the median over the rounds:
 - fps = frames / seconds;
 - ms/frame = 1000 seconds / frames;
 - ref units/frame = (seconds / frames) / (the run's reference seconds): the cost of a
-  frame in reference workloads; it moves with the code, much less with the hour.
+  frame in reference workloads; it moves with the code, much less with the hour;
+- CPU ms/frame = 1000 CPU seconds / frames: user + system time of this process (all its
+  threads) and, for the whole system, of the backend worker process; on a machine
+  shared with other jobs it counts the work done, not the wait for a core.
 
 The reference workload is pure numpy and OpenCV, fixed in size and seed, with the
 pipeline's mix (PNG decoding, image-sized float32 arithmetic, per-cell reductions,
@@ -74,9 +77,10 @@ MARKDOWN_COLUMNS = (
     "ms/frame",
     "reference s",
     "ref units/frame",
+    "CPU ms/frame",
 )
-"""Columns of `SpeedResult.to_markdown`; fps, ms/frame, reference s and ref units/frame
-are medians over the rounds."""
+"""Columns of `SpeedResult.to_markdown`; fps, ms/frame, reference s, ref units/frame and
+CPU ms/frame are medians over the rounds."""
 
 
 # ----------------------------------------------------------------------------------------
@@ -151,6 +155,8 @@ class WorkloadTiming:
     """Wall-clock seconds of each round."""
     reference_s: tuple[float, ...]
     """The reference workload's seconds around each round's run (mean of the two)."""
+    cpu_s: tuple[float, ...]
+    """CPU seconds (user + system) of each round's run, the backend worker's included."""
 
     @property
     def fps_runs(self) -> tuple[float, ...]:
@@ -172,6 +178,11 @@ class WorkloadTiming:
         return statistics.median(
             s / self.frames / r for s, r in zip(self.seconds, self.reference_s, strict=True)
         )
+
+    @property
+    def cpu_ms_per_frame(self) -> float:
+        """Median CPU milliseconds per frame."""
+        return statistics.median(1e3 * c / self.frames for c in self.cpu_s)
 
     @property
     def label(self) -> str:
@@ -233,7 +244,17 @@ class SpeedResult:
             f"reference workload: median {statistics.median(self.reference_s):.3f} s "
             f"(runs {' '.join(f'{r:.3f}' for r in self.reference_s)})",
         ]
-        rows = [["workload", "frames", "fps", "fps per round", "ms/frame", "ref units/frame"]]
+        rows = [
+            [
+                "workload",
+                "frames",
+                "fps",
+                "fps per round",
+                "ms/frame",
+                "ref units/frame",
+                "CPU ms/frame",
+            ]
+        ]
         for w in self.workloads:
             rows.append(
                 [
@@ -243,13 +264,15 @@ class SpeedResult:
                     " ".join(f"{f:.1f}" for f in w.fps_runs),
                     f"{w.ms_per_frame:.1f}",
                     f"{w.ref_units_per_frame:.4f}",
+                    f"{w.cpu_ms_per_frame:.1f}",
                 ]
             )
         lines = aligned_rows(rows)
         ratios = ", ".join(f"{k} {v:.2f}" for k, v in self.ratios().items())
         foot = [
-            "fps, ms/frame, ref units/frame: medians over the rounds; ref units/frame = "
-            "(seconds per frame) / (the reference seconds around the run), lower is faster.",
+            "fps, ms/frame, ref units/frame, CPU ms/frame: medians over the rounds; ref "
+            "units/frame = (seconds per frame) / (the reference seconds around the run), lower "
+            "is faster; CPU ms/frame: this process's and the backend worker's CPU time.",
         ]
         if ratios:
             foot.append(f"whole system fps / front end fps: {ratios}")
@@ -274,6 +297,7 @@ class SpeedResult:
                 f"{w.ms_per_frame:.2f}",
                 f"{statistics.median(w.reference_s):.3f}",
                 f"{w.ref_units_per_frame:.5f}",
+                f"{w.cpu_ms_per_frame:.2f}",
             ]
             for w in self.workloads
         ]
@@ -398,9 +422,15 @@ def _open_source(
     return _Source(folder.name, folder, cfg, dataset, indices)
 
 
-def _time_front_end(source: _Source) -> tuple[float, int]:
-    """Seconds of FrontEnd.process over the source's frames (preloaded, at most
-    MAX_PRELOADED distinct ones, cycled) -> (seconds, frames)."""
+def _cpu_seconds() -> float:
+    """User + system CPU seconds of this process and of its finished (waited-for) children."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
+def _time_front_end(source: _Source) -> tuple[float, int, float]:
+    """FrontEnd.process over the source's frames (preloaded, at most MAX_PRELOADED distinct
+    ones, cycled) -> (seconds, frames, CPU seconds)."""
     from planeslam.frontend.pipeline import FrontEnd
 
     n = len(source.indices)
@@ -410,23 +440,30 @@ def _time_front_end(source: _Source) -> tuple[float, int]:
     front_end = FrontEnd(source.config, seed=0)
     with single_native_threads():
         front_end.process(loaded[0].depth_m, loaded[0].timestamp)
-        t0 = time.perf_counter()
+        cpu0, t0 = _cpu_seconds(), time.perf_counter()
         for k in range(n):
             frame = loaded[k % distinct]
             front_end.process(frame.depth_m, frame.timestamp)
-        seconds = time.perf_counter() - t0
-    return seconds, n
+        seconds, cpu = time.perf_counter() - t0, _cpu_seconds() - cpu0
+    return seconds, n, cpu
 
 
-def _time_whole_system(source: _Source) -> tuple[float, int]:
-    """Seconds of `run_frames` (reading on its thread, backend, final optimisation) on a
-    fresh SLAM over the source's frames -> (seconds, frames processed)."""
+def _time_whole_system(source: _Source) -> tuple[float, int, float]:
+    """`run_frames` (reading on its thread, backend, final optimisation) on a fresh SLAM
+    over the source's frames -> (seconds, frames processed, CPU seconds: this process's
+    during the run and the backend worker's whole life, start-up included)."""
     from planeslam.slam import run_frames, slam_for_dataset
 
+    children0 = os.times()
     slam = slam_for_dataset(source.config, source.dataset, source.indices[0])
     with slam:
+        cpu0 = _cpu_seconds()
         summary = run_frames(slam, source.dataset, source.indices)
-    return summary.seconds, summary.frames
+        cpu = _cpu_seconds() - cpu0
+    children = os.times()  # the worker, waited for when the SLAM closed
+    cpu += children.children_user + children.children_system
+    cpu -= children0.children_user + children0.children_system
+    return summary.seconds, summary.frames, cpu
 
 
 def bench_speed(
@@ -459,26 +496,24 @@ def bench_speed(
     sources = [_open_source(f, frames, config, overrides) for f in folders]
     load_before = _loadavg()
     reference = [reference_workload()]
-    # (kind, dataset) -> per round: (seconds, frames, reference seconds around the run)
-    raw: dict[tuple[str, str], list[tuple[float, int, float]]] = {}
+    # (kind, dataset) -> per round: (seconds, frames, CPU seconds, reference around the run)
+    raw: dict[tuple[str, str], list[tuple[float, int, float, float]]] = {}
     for r in range(repeats):
         for source in sources:
             for kind, timer in ((FRONT_END, _time_front_end), (WHOLE_SYSTEM, _time_whole_system)):
                 if progress:
                     log.info("round %d/%d: %s %s", r + 1, repeats, kind, source.name)
-                seconds, frames_done = timer(source)
+                seconds, frames_done, cpu = timer(source)
                 reference.append(reference_workload())
                 around = 0.5 * (reference[-2] + reference[-1])
-                raw.setdefault((kind, source.name), []).append((seconds, frames_done, around))
+                raw.setdefault((kind, source.name), []).append((seconds, frames_done, cpu, around))
     workloads = []
     for (kind, name), runs in raw.items():
-        counts = {n for _, n, _ in runs}
+        counts = {run[1] for run in runs}
         if len(counts) != 1:
             raise DatasetFormatError(f"{name}: rounds processed different frame counts {counts}")
-        run_s = tuple(s for s, _, _ in runs)
-        workloads.append(
-            WorkloadTiming(kind, name, counts.pop(), run_s, tuple(a for _, _, a in runs))
-        )
+        run_s, cpu_s, around_s = (tuple(run[i] for run in runs) for i in (0, 2, 3))
+        workloads.append(WorkloadTiming(kind, name, counts.pop(), run_s, around_s, cpu_s))
     return SpeedResult(
         command=command,
         machine=machine_now(load_before),
