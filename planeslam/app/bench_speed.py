@@ -342,14 +342,14 @@ def append_markdown(result: SpeedResult, path: str | Path) -> Path:
 # The benchmark.
 
 
-def machine_now(load_before: tuple[float, float, float]) -> MachineInfo:
-    """MachineInfo with the current date, the code's commit and the load now as 'after'."""
+def machine_now(load_before: tuple[float, float, float], started_utc: str) -> MachineInfo:
+    """MachineInfo with the code's commit and the load now as 'after'."""
     return MachineInfo(
         cpu_model=_cpu_model(),
         cores=len(os.sched_getaffinity(0))
         if hasattr(os, "sched_getaffinity")
         else os.cpu_count() or 1,
-        date_utc=datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M"),
+        date_utc=started_utc,
         commit=code_commit(),
         load_before=load_before,
         load_after=_loadavg(),
@@ -494,6 +494,7 @@ def bench_speed(
             "bench speed: no dataset to time (give a folder or keep the synthetic scene)"
         )
     sources = [_open_source(f, frames, config, overrides) for f in folders]
+    started = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M")
     load_before = _loadavg()
     reference = [reference_workload()]
     # (kind, dataset) -> per round: (seconds, frames, CPU seconds, reference around the run)
@@ -516,7 +517,7 @@ def bench_speed(
         workloads.append(WorkloadTiming(kind, name, counts.pop(), run_s, around_s, cpu_s))
     return SpeedResult(
         command=command,
-        machine=machine_now(load_before),
+        machine=machine_now(load_before, started),
         repeats=repeats,
         reference_s=tuple(reference),
         workloads=tuple(workloads),
