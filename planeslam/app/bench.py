@@ -137,15 +137,7 @@ class BenchResult:
                     *[f"{m.stage_ms[s]:.2f}" if s in m.stage_ms else "-" for s in stages],
                 ]
             )
-        widths = [max(len(r[i]) for r in rows) for i in range(len(cols))]
-        lines = [
-            "  ".join(
-                c.ljust(w) if i == 0 else c.rjust(w)
-                for i, (c, w) in enumerate(zip(r, widths, strict=True))
-            )
-            for r in rows
-        ]
-        lines.insert(1, "-" * len(lines[0]))
+        lines = aligned_rows(rows)
         foot = (
             f"stage columns: median ms per frame. open3d_segment_plane: the valid depth points as "
             f"an Open3D PointCloud, segment_plane(distance_threshold={O3D_DISTANCE_M}, "
@@ -154,6 +146,21 @@ class BenchResult:
             f"front end found (at most {O3D_MAX_PLANES})."
         )
         return head + "\n".join(lines) + "\n" + foot
+
+
+def aligned_rows(rows: Sequence[Sequence[str]]) -> list[str]:
+    """Text table lines: the first column left-aligned, the others right-aligned, a rule
+    under the first row (the header)."""
+    widths = [max(len(r[i]) for r in rows) for i in range(len(rows[0]))]
+    lines = [
+        "  ".join(
+            c.ljust(w) if i == 0 else c.rjust(w)
+            for i, (c, w) in enumerate(zip(r, widths, strict=True))
+        )
+        for r in rows
+    ]
+    lines.insert(1, "-" * len(lines[0]))
+    return lines
 
 
 _BLAS_SET = (

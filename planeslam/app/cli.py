@@ -374,6 +374,33 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     add_override_option(robust)
     robust.set_defaults(func=_cmd_bench_robust)
 
+    speed = _command(
+        bench,
+        "speed",
+        help="front end and whole system fps, 3 rounds, normalised by a reference workload",
+        description="Time the front end (frames in memory) and the whole system (as "
+        "`planeslam run`, outputs not written) on each DATASET and on the built-in synthetic "
+        "scene, in rounds within one sitting, with a fixed numpy/OpenCV reference workload "
+        "timed before the first run and after every run. Prints medians over the rounds, the "
+        "load average before and after, and reference units per frame (seconds per frame / "
+        "reference seconds), which compare across hours. Default DATASET: "
+        "../shared/data/7scenes_redkitchen_1000f when present.",
+    )
+    speed.add_argument("dataset", type=Path, nargs="*", help="TUM-layout dataset folder(s)")
+    speed.add_argument(
+        "--frames", type=int, default=300, help="first N frames of each dataset (default 300)"
+    )
+    speed.add_argument("--repeats", type=int, default=3, help="rounds (default 3)")
+    speed.add_argument(
+        "--no-synthetic", action="store_true", help="leave out the built-in synthetic scene"
+    )
+    add_config_option(speed)
+    add_override_option(speed)
+    speed.add_argument(
+        "--markdown", type=Path, default=None, metavar="FILE", help="append the table to FILE"
+    )
+    speed.set_defaults(func=_cmd_bench_speed)
+
 
 def _positive_int(text: str) -> int:
     try:
@@ -441,6 +468,30 @@ def _cmd_bench_robust(args: argparse.Namespace) -> int:
             progress=not args.quiet,
         )
     )
+    return 0
+
+
+def _cmd_bench_speed(args: argparse.Namespace) -> int:
+    from planeslam.app.bench_speed import DEFAULT_DATASET, append_markdown, bench_speed
+
+    datasets = list(args.dataset)
+    if not datasets and DEFAULT_DATASET.is_dir():
+        datasets = [DEFAULT_DATASET]
+    elif not datasets:
+        log.warning("%s not found: timing the synthetic scene only", DEFAULT_DATASET)
+    result = bench_speed(
+        datasets,
+        frames=args.frames,
+        repeats=args.repeats,
+        synthetic=not args.no_synthetic,
+        config=args.config,
+        overrides=override_layers(args),
+        command=args.command_line,
+        progress=not args.quiet,
+    )
+    print(result.to_text())
+    if args.markdown is not None:
+        print(f"table appended to {append_markdown(result, args.markdown)}")
     return 0
 
 

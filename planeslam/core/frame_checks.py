@@ -64,8 +64,9 @@ def clean_depth(
             f"{where} has shape {depth.shape}, expected (H, W) = {tuple(shape)} "
             "(the camera's height and width)"
         )
-    valid = (depth >= 0) & (depth < np.inf)  # False for NaN, -inf, +inf, negative
-    if not valid.all():
+    # Two reductions without temporaries; NaN propagates into min and max.
+    if not (depth.min() >= 0 and depth.max() < np.inf):
+        valid = (depth >= 0) & (depth < np.inf)  # False for NaN, -inf, +inf, negative
         depth = np.where(valid, depth, depth.dtype.type(0))
     return depth
 

@@ -55,13 +55,20 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import GeometryError
 from planeslam.core.plane_fit import merge_moments, plane_from_moments, smallest_eigh3
 from planeslam.frontend.config import SegmentationConfig
+from planeslam.frontend.kernels import (
+    assign_pixels_kernel,
+    cells_from_cloud_kernel,
+    dense_components_kernel,
+    flood_fill_kernel,
+    gather_planes_kernel,
+    group_sums_kernel,
+    link_cells_kernel,
+)
 from planeslam.frontend.segment_common import (
     OUTLINE_STRIDE,
     PixelGrid,
@@ -317,27 +324,24 @@ def _fitting(
 
 
 def _link_cells(cells: _Cells, rows: int, cols: int, cfg: SegmentationConfig):
-    """Links between 4-neighbour planar cells that fit each other's planes.
+    """Links between 4-neighbour planar cells that fit each other's planes (normals within
+    `_cos_tolerance`, each cell within merge_max_rms_sigmas of the other's plane).
 
     Returns (component label per cell (C,), links per cell (C,))."""
-    grid = np.arange(rows * cols).reshape(rows, cols)
-    a = np.concatenate([grid[:, :-1].ravel(), grid[:-1, :].ravel()])
-    b = np.concatenate([grid[:, 1:].ravel(), grid[1:, :].ravel()])
-    both = cells.planar[a] & cells.planar[b]
-    a, b = a[both], b[both]
-    cos_max = _cos_tolerance(cells.tilt_var[a] + cells.tilt_var[b], cfg)
-    ok = np.einsum("ki,ki->k", cells.normal[a], cells.normal[b]) >= cos_max
-    a, b = a[ok], b[ok]
-    k2 = cfg.organized.merge_max_rms_sigmas**2
-    ok = (_rms2_to_plane(cells, b, cells.normal[a], cells.d[a]) <= k2 * cells.sigma[b] ** 2) & (
-        _rms2_to_plane(cells, a, cells.normal[b], cells.d[b]) <= k2 * cells.sigma[a] ** 2
+    return link_cells_kernel(
+        rows,
+        cols,
+        cells.planar,
+        cells.normal,
+        cells.d,
+        cells.mean,
+        cells.scatter,
+        cells.count,
+        cells.sigma,
+        cells.tilt_var,
+        math.radians(cfg.organized.merge_max_angle_deg),
+        float(cfg.organized.merge_max_rms_sigmas**2),
     )
-    a, b = a[ok], b[ok]
-    n = rows * cols
-    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(n, n))
-    _, comp = connected_components(graph, directed=False)
-    degree = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
-    return comp, degree
 
 
 def _grow_regions(
@@ -367,8 +371,7 @@ def _grow_regions(
             fit = np.zeros(rows * cols, dtype=bool)
             fit[cand] = _fitting(cells, cand, region, cfg)
             fit[seed] = True
-            comp, _ = ndimage.label(fit.reshape(rows, cols))
-            new = np.flatnonzero(comp.ravel() == comp.ravel()[seed])
+            new = flood_fill_kernel(fit, rows, cols, seed)
             if len(new) == len(grown):
                 break
             grown = new
@@ -384,21 +387,9 @@ def _group_planes(cells: _Cells, group: np.ndarray, n_groups: int):
 
     group: (C,) group index per cell, -1 for none. Returns (count (G,), centroid (G, 3),
     scatter (G, 3, 3), normal (G, 3) toward the camera, d (G,))."""
-    member = group >= 0
-    g = group[member]
-    w = cells.count[member].astype(np.float64)
-    mean = cells.mean[member]
-    count = np.bincount(g, weights=w, minlength=n_groups)
-    first = np.stack(
-        [np.bincount(g, weights=w * mean[:, i], minlength=n_groups) for i in range(3)], 1
+    count, first, second = group_sums_kernel(
+        group, cells.count, cells.mean, cells.scatter, n_groups
     )
-    raw = cells.scatter[member] + w[:, None, None] * mean[:, :, None] * mean[:, None, :]
-    second = np.empty((n_groups, 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            second[:, i, j] = second[:, j, i] = np.bincount(
-                g, weights=raw[:, i, j], minlength=n_groups
-            )
     safe = np.maximum(count, 1.0)
     centroid = first / safe[:, None]
     scatter = second - safe[:, None, None] * centroid[:, :, None] * centroid[:, None, :]
@@ -477,7 +468,8 @@ def _merge_coplanar(
     sigma = noise.sigma_m(c[:, 2])
     fits = rms2 <= (cfg.organized.merge_max_rms_sigmas * sigma[None, :]) ** 2
     same = fits & fits.T & (n @ n.T >= math.cos(math.radians(cfg.organized.coplanar_max_angle_deg)))
-    ncomp, comp = connected_components(same, directed=False)
+    comp = dense_components_kernel(same)
+    ncomp = int(comp.max()) + 1
     if ncomp == len(regions):
         return regions
     merged = []
@@ -503,26 +495,21 @@ def _neighbour_labels(cell_label: np.ndarray, rows: int, cols: int) -> np.ndarra
 
 @dataclass
 class _PixelLabels:
-    """Pixel labels in a permuted cell layout: first the cells whose only candidate is
-    plane i (rows starts[i]:starts[i+1]), then the cells with several candidates."""
+    """Pixel labels in cell-major layout and inliers per plane."""
 
-    perm: np.ndarray  # (C',) cell index of each row
-    starts: np.ndarray  # (R + 1,) row bounds of each plane's single-candidate cells
-    x: np.ndarray  # (C', P) float32 [m]
-    y: np.ndarray
-    z: np.ndarray
-    labels: np.ndarray  # (C', P) int32, -1 for no plane
+    labels: np.ndarray  # (C, P) int32, -1 for no plane
     counts: np.ndarray  # (R,) inlier pixels per plane
+    single: np.ndarray  # (C,) bool: the cell has exactly one candidate plane
 
 
 def _assign_pixels(x, y, z, valid, cand, normals, ds, cfg, noise) -> _PixelLabels:
     """Step 5 of the module docstring. x, y, z, valid: (C, P) cell-major; cand (C, K)
-    candidate labels (-1 for none).
+    candidate labels (-1 for none); normals (R, 3), ds (R,) float32.
 
     A pixel is an inlier of a candidate plane when |n . p + d| <= k sigma(z); with
-    several candidates (cells touching two planes) the nearest in units of sigma wins.
+    several candidates (cells touching two planes) the nearest in units of sigma wins
+    (`kernels.assign_pixels_kernel`).
     """
-    n_regions = len(ds)
     ka = np.float32(cfg.pixel_max_distance_sigmas * noise.sigma_a_m)
     kb = np.float32(cfg.pixel_max_distance_sigmas * noise.sigma_b_per_m)
     # Unique candidate labels per cell, valid ones first.
@@ -530,59 +517,9 @@ def _assign_pixels(x, y, z, valid, cand, normals, ds, cfg, noise) -> _PixelLabel
     cu[:, 1:][cu[:, 1:] == cu[:, :-1]] = -1
     cu = -np.sort(-cu, axis=1)
     ncand = (cu >= 0).sum(axis=1)
-    cu = cu[:, : max(int(ncand.max()), 1)]
-    single = np.flatnonzero(ncand == 1)
-    single = single[np.argsort(cu[single, 0], kind="stable")]
-    starts = np.searchsorted(cu[single, 0], np.arange(n_regions + 1))
-    multi = np.flatnonzero(ncand > 1)
-    perm = np.concatenate([single, multi])
-    xp, yp, zp, vp = x[perm], y[perm], z[perm], valid[perm]
-    # |r| <= k sigma(z)  <=>  |r| / (ka + kb z^2) <= 1; tol holds the denominator.
-    tol = zp * zp
-    tol *= kb
-    tol += ka
-    tol[~vp] = -1.0  # invalid pixels fit no plane
-    labels = np.full(xp.shape, -1, dtype=np.int32)
-    counts = np.zeros(n_regions, dtype=np.int64)
-    for i in range(n_regions):
-        a, b = starts[i], starts[i + 1]
-        if a == b:
-            continue
-        n = normals[i]
-        r = xp[a:b] * n[0]
-        r += yp[a:b] * n[1]
-        r += zp[a:b] * n[2]
-        r += ds[i]
-        ok = np.abs(r, out=r) <= tol[a:b]
-        np.copyto(labels[a:b], np.int32(i), where=ok)
-        counts[i] = np.count_nonzero(ok)
-    nb = len(single)
-    if len(multi):
-        cb = cu[multi]
-        xb, yb, zb, tb = xp[nb:], yp[nb:], zp[nb:], tol[nb:]
-        best = np.full(xb.shape, np.float32(1.0))
-        best_label = np.full(xb.shape, -1, dtype=np.int32)
-
-        def residual(ls: np.ndarray) -> np.ndarray:
-            ls_safe = np.maximum(ls, 0)
-            n = normals[ls_safe]
-            r = xb * n[:, 0:1]
-            r += yb * n[:, 1:2]
-            r += zb * n[:, 2:3]
-            r += ds[ls_safe][:, None]
-            r = np.abs(r, out=r)
-            r /= tb  # invalid pixels: tb = -1, never better
-            return r
-
-        for slot in range(cb.shape[1]):
-            ls = cb[:, slot]
-            e = residual(ls)
-            better = (e <= best) & (e >= 0) & (ls >= 0)[:, None]
-            np.copyto(best, e, where=better)
-            np.copyto(best_label, ls[:, None], where=better)
-        labels[nb:] = best_label
-        counts += np.bincount(best_label.ravel() + 1, minlength=n_regions + 1)[1:]
-    return _PixelLabels(perm, starts, xp, yp, zp, labels, counts)
+    cu = np.ascontiguousarray(cu[:, : max(int(ncand.max()), 1)])
+    labels, counts = assign_pixels_kernel(x, y, z, valid, cu, ncand, normals, ds, ka, kb)
+    return _PixelLabels(labels, counts, ncand == 1)
 
 
 def _segment_organized(
@@ -594,18 +531,15 @@ def _segment_organized(
     outline_stride: int = OUTLINE_STRIDE,
 ) -> Segmentation:
     t0 = time.perf_counter()
-    z = grid.to_cells(cloud[..., 2])
-    valid = z > 0
-    far = z > cfg.max_depth_m
-    if far.any():  # a cloud made with a larger max_depth_m
-        valid &= ~far
-        z = np.where(valid, z, np.float32(0.0))
+    # Points beyond max_depth_m (a cloud made with a larger one) are invalid too.
+    limit = np.float32(cfg.max_depth_m)
+    x, y, z, valid = cells_from_cloud_kernel(
+        cloud, grid.rows, grid.cols, grid.cell, grid.rx, grid.ry, limit
+    )
     if not valid.any():
         return empty_segmentation(
             grid.height, grid.width, no_valid_reason(depth_m, cfg.max_depth_m)
         )
-    x = z * grid.rx
-    y = z * grid.ry
     t1 = time.perf_counter()
     cells = _cell_fits(x, y, z, valid, cfg, noise)
     t2 = time.perf_counter()
@@ -630,38 +564,12 @@ def _segment_organized(
         return empty_segmentation(
             grid.height, grid.width, f"no plane with at least {cfg.min_plane_points} points"
         )
-    n_old = len(regions)
-    remap = np.full(n_old + 1, -1, dtype=np.int32)
+    remap = np.full(len(regions) + 1, -1, dtype=np.int32)
     remap[order + 1] = np.arange(len(order), dtype=np.int32)
-    labels = px.labels
-    if len(order) != n_old or np.any(order != np.arange(n_old)):
-        labels = remap[labels + 1]
-    cell_labels = np.full((grid.rows * grid.cols, grid.cell**2), -1, dtype=np.int32)
-    cell_labels[px.perm] = labels
-    labels_img = grid.to_image(cell_labels)
     # Inlier pixels of all planes, grouped by new plane id, in one (3, N) float64
-    # buffer: single-candidate rows are already grouped by region (boolean masks
-    # of contiguous blocks), pixels of multi-candidate rows are sorted by label.
-    psz = grid.cell**2
-    nb = px.starts[-1]
-    flat = labels.reshape(-1)
-    single_ok = flat[: nb * psz] >= 0
-    multi_flat = flat[nb * psz :]
-    multi_sel = np.flatnonzero(multi_flat >= 0)
-    multi_lab = multi_flat[multi_sel]
-    multi_sel = multi_sel[np.argsort(multi_lab.astype(np.int16), kind="stable")] + nb * psz
-    multi_lo = np.searchsorted(np.sort(multi_lab), np.arange(len(order) + 1))
-    blocks = [(px.starts[o] * psz, px.starts[o + 1] * psz) for o in order]
-    n_single = [np.count_nonzero(single_ok[a:b]) for a, b in blocks]
-    n_multi = np.diff(multi_lo)
-    bounds = np.concatenate([[0], np.cumsum(np.add(n_single, n_multi))])
-    xyz = np.empty((3, bounds[-1]))  # float64 rows: contiguous per-plane columns
-    for k, coord in enumerate((px.x, px.y, px.z)):
-        flat_k = coord.reshape(-1)
-        for i, (a, b) in enumerate(blocks):
-            lo, mid = bounds[i], bounds[i] + n_single[i]
-            xyz[k, lo:mid] = flat_k[a:b][single_ok[a:b]]
-            xyz[k, mid : bounds[i + 1]] = flat_k[multi_sel[multi_lo[i] : multi_lo[i + 1]]]
+    # buffer (rows contiguous); labels renumbered in place.
+    xyz, bounds = gather_planes_kernel(x, y, z, px.labels, px.single, remap, len(order))
+    labels_img = grid.to_image(px.labels)
     lab_small = labels_img[::outline_stride, ::outline_stride]
     boxes = ndimage.find_objects(lab_small + 1, max_label=len(order))
     planes = []

@@ -24,6 +24,7 @@ from planeslam.core.types import (
 )
 from planeslam.frontend.cloud import check_depth_shape, organized_cloud
 from planeslam.frontend.config import FrontEndSettings, front_end_settings
+from planeslam.frontend.kernels import warm_up
 from planeslam.frontend.objects import FrameStructure, build_structure, to_map_dict
 from planeslam.frontend.segmentation import make_segmenter
 from planeslam.frontend.types import Segmentation
@@ -113,6 +114,7 @@ class FrontEnd:
         self.rays = PixelRays.for_camera(config.camera)
         self.rng = np.random.default_rng(seed)
         self.segmenter = make_segmenter(config.segmentation, config.sensor)
+        warm_up()  # the compiled kernels, before the first frame's clock starts
 
     def process(self, depth_m: np.ndarray, timestamp: float = 0.0) -> FrameObservation:
         """(H, W) depth [m], 0 = invalid -> the frame's planes, edges, corners and objects.

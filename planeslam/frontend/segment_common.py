@@ -260,7 +260,7 @@ def _outline(
     contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
     if not contours:
         raise GeometryError(f"plane {plane_id} has no pixels in its bounding box {box}")
-    contour = max(contours, key=cv2.contourArea)
+    contour = contours[0] if len(contours) == 1 else max(contours, key=cv2.contourArea)
     poly = cv2.approxPolyDP(contour, epsilon_px / s, True)
     poly = poly.reshape(-1, 2)
     if len(poly) < 3:
@@ -268,8 +268,9 @@ def _outline(
     u, v = poly[:, 0] + u0, poly[:, 1] + v0
     # A region on the last sampled row / column reaches the image border.
     last_v, last_u = labels_small.shape[0] - 1, labels_small.shape[1] - 1
-    u = np.where(u == last_u, grid.width - 1, np.clip(s * u, 0, grid.width - 1))
-    v = np.where(v == last_v, grid.height - 1, np.clip(s * v, 0, grid.height - 1))
+    # (np.minimum(np.maximum(...)) is np.clip for integers, without its Python layers)
+    u = np.where(u == last_u, grid.width - 1, np.minimum(np.maximum(s * u, 0), grid.width - 1))
+    v = np.where(v == last_v, grid.height - 1, np.minimum(np.maximum(s * v, 0), grid.height - 1))
     rays = grid.rays[v, u]
     along = rays @ normal
     along = np.where(np.abs(along) > 1e-9, along, -1e-9)
