@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from planeslam import __version__
+from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.errors import EvaluationError
 from planeslam.core.safe_files import write_text_atomic
 
@@ -44,6 +45,10 @@ class RunInfo:
         return Path(self.dataset).name
 
 
+MAX_RUN_JSON_BYTES = 1 << 20
+"""A run.json is a few hundred bytes; a larger one is not ours."""
+
+
 def write_run_info(info: RunInfo, out_dir: str | Path) -> Path:
     """Write `out_dir`/run.json; returns its path."""
     text = json.dumps({"schema": SCHEMA, **asdict(info)}, indent=2) + "\n"
@@ -58,10 +63,7 @@ def read_run_info(run_dir: str | Path) -> RunInfo:
         raise EvaluationError(
             f"{path}: not found; is {Path(run_dir)} the output folder of `planeslam run`?"
         )
-    try:
-        data: Any = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise EvaluationError(f"{path}: not JSON ({exc})") from None
+    data: Any = read_json_file(path, EvaluationError, MAX_RUN_JSON_BYTES, "run.json")
     if not isinstance(data, dict) or data.get("schema") != SCHEMA:
         raise EvaluationError(f"{path}: expected a JSON object with schema '{SCHEMA}'")
     names = {f.name for f in fields(RunInfo)}

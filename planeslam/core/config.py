@@ -20,6 +20,7 @@ from typing import Any, TypeVar
 
 import yaml
 
+from planeslam.core.bounded_parse import load_yaml, read_yaml_file
 from planeslam.core.errors import ConfigError
 
 T = TypeVar("T")
@@ -92,15 +93,8 @@ def _coerce(hint: Any, value: Any, source: str, key: str) -> Any:
 
 
 def read_yaml(path: Path) -> Any:
-    """Parse a YAML file, or raise a ConfigError naming it."""
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return yaml.safe_load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConfigError(f"{path}: not a readable YAML file ({reason})") from None
+    """Parse a YAML file within `bounded_parse`'s limits, or raise a ConfigError naming it."""
+    return read_yaml_file(path, ConfigError, "config file")
 
 
 def to_mapping(obj: Any) -> Any:
@@ -155,11 +149,7 @@ def parse_override(text: str, label: str = "override") -> ConfigLayer:
     if _FLOAT_E.fullmatch(raw):
         value: Any = float(raw)
     else:
-        try:
-            value = yaml.safe_load(raw) if raw else None
-        except yaml.YAMLError as exc:
-            reason = str(exc).splitlines()[0]
-            raise ConfigError(f"{label} {text!r}: the value is not YAML ({reason})") from None
+        value = load_yaml(raw, f"{label} {text!r}", ConfigError, "a YAML value") if raw else None
     return override_layer(key, value, f"{label} {text}", label)
 
 
