@@ -13,7 +13,7 @@ from typing import Any
 from planeslam import __version__
 from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.errors import EvaluationError
-from planeslam.core.safe_files import write_text_atomic
+from planeslam.core.safe_files import resolve_path, write_text_atomic
 
 RUN_JSON = "run.json"
 SCHEMA = "planeslam.run/1"
@@ -38,7 +38,7 @@ class RunInfo:
     def now(cls, dataset: str | Path, backend: str, command: str = "") -> RunInfo:
         """A record of a run starting now on `dataset` (made absolute)."""
         started = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        return cls(str(Path(dataset).resolve()), backend, command, __version__, started)
+        return cls(str(resolve_path(dataset)), backend, command, __version__, started)
 
     @property
     def dataset_name(self) -> str:

@@ -435,7 +435,7 @@ CAMERA_FAULTS = [
         r"unknown key\(s\) focal; valid keys: fx",
     ),
     ("camera.yaml text fx", "fx: wide\n", ConfigError, r"fx expects a number, got 'wide'"),
-    ("camera.yaml zero width", "width: 0\n", ConfigError, r"camera size must be positive"),
+    ("camera.yaml zero width", "width: 0\n", ConfigError, r"image size 0x480 outside"),
     ("camera.yaml NaN centre", "cx: .nan\n", ConfigError, r"camera.cx must be a finite number"),
     ("camera.yaml infinite width", "width: .inf\n", ConfigError, r"width expects a whole number"),
     (

@@ -60,6 +60,15 @@ def open_output(path: str | Path, append: bool = False) -> BinaryIO:
     return open(_open_fd(Path(path), mode), "ab" if append else "wb", buffering=0)
 
 
+def resolve_path(path: str | Path) -> Path:
+    """`path` made absolute with every symbolic link resolved; OSError (ELOOP) naming it
+    for a link loop (pathlib raises RuntimeError there)."""
+    try:
+        return Path(path).resolve()
+    except RuntimeError:
+        raise OSError(errno.ELOOP, "symbolic link loop", str(path)) from None
+
+
 def regular_file_size(path: str | Path) -> int | None:
     """The size [bytes] of `path` when it is a regular file itself (not a link), else None."""
     try:
