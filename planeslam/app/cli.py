@@ -164,7 +164,13 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     )
     add_config_options(p)
     add_topic_options(p)
-    p.add_argument("--out", type=Path, default=None, help="output folder (default out/<name>)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default out/<dataset name>); a previous run's files there are "
+        "moved into previous-<time>/",
+    )
     p.add_argument(
         "--backend",
         choices=tuple(k.value for k in BackendKind),
@@ -188,10 +194,11 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from planeslam.app.run_folder import default_out_dir
     from planeslam.app.runner import run_sequence
 
-    out = args.out if args.out is not None else Path("out") / args.dataset.name
-    with viewer_from_args(args, args.dataset.name) as viewer:
+    out = args.out if args.out is not None else default_out_dir(args.dataset)
+    with viewer_from_args(args, default_out_dir(args.dataset).name) as viewer:
         result = run_sequence(
             args.dataset,
             out,

@@ -33,7 +33,12 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
         "texture; the scene's geometry and truth stay the same.",
     )
     p.add_argument("scene", choices=sorted(SCENES), help="scene to render")
-    p.add_argument("outdir", type=Path, help="output folder (created)")
+    p.add_argument("outdir", type=Path, help="output folder (created; must be empty)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="render into OUTDIR even when it is not empty (its files are replaced)",
+    )
     p.add_argument(
         "--frames", type=whole(1, 100_000), default=None, help="number of frames (default: scene's)"
     )
@@ -87,8 +92,11 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
+    from planeslam.app.run_folder import check_empty_folder
     from planeslam.sim.render import SynthOptions, render_sequence
     from planeslam.sim.scenes import SceneOptions, Texture
+
+    check_empty_folder(args.outdir, args.overwrite)
 
     texture = None
     if args.texture_seed is not None or args.texture_brightness is not None:

@@ -52,12 +52,13 @@ def _open_fd(path: Path, flags: int) -> int:
     return fd
 
 
-def open_output(path: str | Path, append: bool = False) -> BinaryIO:
+def open_output(path: str | Path, append: bool = False, buffering: int = -1) -> BinaryIO:
     """`path` opened for binary writing (truncated, or appended to with `append`), never
-    through a symbolic link, unbuffered. OSError naming `path` for a link, a FIFO or a
-    folder at that name."""
+    through a symbolic link (`buffering` as `open`'s). OSError naming `path` for a link, a
+    FIFO or a folder at that name."""
     mode = os.O_WRONLY | os.O_CREAT | (os.O_APPEND if append else os.O_TRUNC)
-    return open(_open_fd(Path(path), mode), "ab" if append else "wb", buffering=0)
+    fd = _open_fd(Path(path), mode)
+    return open(fd, "ab" if append else "wb", buffering=buffering)
 
 
 def resolve_path(path: str | Path) -> Path:
@@ -121,7 +122,7 @@ class LineWriter:
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._fh: BinaryIO = open_output(self.path)
+        self._fh: BinaryIO = open_output(self.path, buffering=0)
         self._size = 0
 
     def write_line(self, text: str) -> None:
