@@ -341,7 +341,7 @@ class SLAM:
         T_pred = self.predicted_pose()
         valid = np.count_nonzero(depth_m > 0)  # clean_depth set NaN and +-inf to 0
         if not valid:  # a blind sensor: nothing to track with, and no segment starts on it
-            track = TrackResult(T_pred, TrackingPath.LOST, "no valid depth in the frame")
+            track = TrackResult(T_pred, TrackingPath.LOST, "no valid depth: no plane or point")
         elif self._last_tracked is None and not self._in_given_map:  # the first frame seen
             track = TrackResult(self._T_world_first, TrackingPath.FIRST, "first frame")
             self.tracker.start(observation, self._T_world_first, rgb, depth_m)
