@@ -106,8 +106,9 @@ def load_yaml(text: str, source: str, error: type[PlaneSlamError], what: str = "
     `source` ('SOURCE: not WHAT (reason)') for a syntax error or a passed limit."""
     if len(text) > MAX_YAML_BYTES:
         raise error(f"{source}: YAML larger than {MAX_YAML_BYTES} bytes; not read")
-    loader = _BoundedLoader(text)
+    loader = None
     try:
+        loader = _BoundedLoader(text)  # its reader already rejects control characters
         return loader.get_single_data()
     except _Refused as exc:
         raise error(f"{source}: YAML refused: {exc}") from None
@@ -115,7 +116,8 @@ def load_yaml(text: str, source: str, error: type[PlaneSlamError], what: str = "
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise error(f"{source}: not {what} ({reason})") from None
     finally:
-        loader.dispose()
+        if loader is not None:
+            loader.dispose()
 
 
 def read_yaml_file(path: str | Path, error: type[PlaneSlamError], what: str = "file") -> Any:
@@ -189,7 +191,7 @@ def _key_path(here: Any) -> str:
     parts: list[str] = []
     while here is not None and here[1] is not None:
         parent, key = here
-        parts.append(f"[{key}]" if isinstance(key, int) else f".{key}")
+        parts.append(f"[{key}]" if isinstance(key, int) else f".{shown(key)}")
         here = parent
     return "".join(reversed(parts)).lstrip(".") or "(top level)"
 
@@ -214,6 +216,13 @@ def finite_number(
             f"{where}: expected a finite number in [{low:g}, {high:g}], got {_short(value)}"
         )
     return number
+
+
+def shown(text: Any) -> str:
+    """`text` as a message shows it: as it is when printable, else quoted with escapes (a
+    key or value read from a file keeps the message on one line)."""
+    text = str(text)
+    return text if text.isprintable() else repr(text)
 
 
 def _short(value: Any) -> str:

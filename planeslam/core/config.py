@@ -20,7 +20,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from planeslam.core.bounded_parse import load_yaml, read_yaml_file
+from planeslam.core.bounded_parse import load_yaml, read_yaml_file, shown
 from planeslam.core.errors import ConfigError
 
 T = TypeVar("T")
@@ -41,7 +41,7 @@ def from_mapping(cls: type[T], data: Any, source: str, section: str = "") -> T:
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(
-            f"{where}: unknown key(s) {', '.join(map(str, unknown))}; "
+            f"{where}: unknown key(s) {', '.join(map(shown, unknown))}; "
             f"valid keys: {', '.join(fields)}"
         )
     hints = typing.get_type_hints(cls)
@@ -150,7 +150,7 @@ def parse_override(text: str, label: str = "override") -> ConfigLayer:
         value: Any = float(raw)
     else:
         value = load_yaml(raw, f"{label} {text!r}", ConfigError, "a YAML value") if raw else None
-    return override_layer(key, value, f"{label} {text}", label)
+    return override_layer(key, value, f"{label} {shown(text)}", label)
 
 
 def override_layer(key: str, value: Any, source: str, label: str) -> ConfigLayer:
