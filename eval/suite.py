@@ -25,6 +25,7 @@ from planeslam.config import resolve_config
 from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.config import from_mapping, read_yaml
 from planeslam.core.errors import ConfigError, DatasetFormatError, EvaluationError
+from planeslam.core.safe_files import atomic_output
 from planeslam.io.sequence import RgbdDataset, open_dataset
 from planeslam.io.trajectory import Trajectory, write_tum
 from planeslam.sim.render import SynthOptions
@@ -415,7 +416,7 @@ def write_csv(result: SuiteResult, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     names = [f.name for f in fields(SuiteRow)]
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.DictWriter(fh, fieldnames=names)
         writer.writeheader()
         for row in result.rows:

@@ -22,6 +22,7 @@ import yaml
 
 from planeslam.core.bounded_parse import load_yaml, read_yaml_file, shown
 from planeslam.core.errors import ConfigError
+from planeslam.core.safe_files import write_text_atomic
 
 T = TypeVar("T")
 
@@ -107,10 +108,8 @@ def to_mapping(obj: Any) -> Any:
 
 
 def save_yaml(obj: Any, path: Path) -> None:
-    """Write a dataclass (a resolved config) as YAML."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", encoding="utf-8") as fh:
-        yaml.safe_dump(to_mapping(obj), fh, sort_keys=False)
+    """Write a dataclass (a resolved config) as YAML (atomically, never through a link)."""
+    write_text_atomic(path, yaml.safe_dump(to_mapping(obj), sort_keys=False))
 
 
 # ------------------------------------------------------------------------------ layers

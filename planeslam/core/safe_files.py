@@ -91,13 +91,15 @@ def read_regular_file(path: str | Path, max_bytes: int) -> bytes:
 
 
 @contextmanager
-def atomic_output(path: str | Path) -> Iterator[Path]:
+def atomic_output(path: str | Path, keep_suffix: bool = False) -> Iterator[Path]:
     """A temporary path beside `path` to write the whole file to; when the block ends
     without an error it replaces `path` in one step, otherwise it is removed and `path`
-    is left as it was. Creates the parent folder."""
+    is left as it was. Creates the parent folder. `keep_suffix`: the temporary name ends
+    in `path`'s suffix (for writers that choose the format by it: OpenCV, Open3D)."""
     final = Path(path)
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.name}.{secrets.token_hex(6)}.tmp")
+    suffix = final.suffix if keep_suffix else ""
+    tmp = final.with_name(f".{final.name}.{secrets.token_hex(6)}.tmp{suffix}")
     try:
         os.close(_open_fd(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL))  # ours, not a link
         yield tmp
