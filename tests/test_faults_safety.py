@@ -206,6 +206,9 @@ def test_claim_moves_only_run_files(tmp_path: Path) -> None:
     assert (tmp_path / "notes.txt").read_text() == "mine\n"
     with claim_run_folder(tmp_path) as again:
         assert again is None
+    (tmp_path / "groundtruth.txt").write_text("# the dataset's\n")  # --out is the dataset
+    with claim_run_folder(tmp_path, [tmp_path / "groundtruth.txt"]) as kept:
+        assert kept is None and (tmp_path / "groundtruth.txt").is_file()
 
 
 def test_synth_refuses_a_folder_in_use(tmp_path: Path) -> None:

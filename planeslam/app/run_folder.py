@@ -73,18 +73,23 @@ def default_out_dir(dataset: str | Path) -> Path:
 
 
 @contextmanager
-def claim_run_folder(out: str | Path) -> Iterator[Path | None]:
+def claim_run_folder(out: str | Path, inputs: Sequence[Path] = ()) -> Iterator[Path | None]:
     """Own `out` for a run: hold its lock (`FolderLock`: OutputFolderError naming the live
     run that holds it) and move a previous run's files (`RUN_OUTPUTS`, links moved as links)
-    into `out`/previous-<UTC time>/, so a folder never mixes two runs. Other files are left
-    alone. Yields where the old files went (None: there were none)."""
+    into `out`/previous-<UTC time>/, so a folder never mixes two runs. Other files, and
+    `inputs` the run still reads (a dataset's groundtruth.txt when `out` is the dataset
+    folder), are left alone. Yields where the old files went (None: there were none)."""
     out = Path(out)
     with FolderLock(out):
-        yield _move_previous(out)
+        yield _move_previous(out, {resolve_path(p) for p in inputs})
 
 
-def _move_previous(out: Path) -> Path | None:
-    found = [name for name in RUN_OUTPUTS if os.path.lexists(out / name)]
+def _move_previous(out: Path, keep: set[Path]) -> Path | None:
+    found = [
+        name
+        for name in RUN_OUTPUTS
+        if os.path.lexists(out / name) and resolve_path(out / name) not in keep
+    ]
     if not found:
         return None
     stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")

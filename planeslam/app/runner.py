@@ -198,7 +198,7 @@ def run_sequence(
         raise ConfigError(f"{root}: no frames to process")
     # Inputs and --map are read and checked before the folder is touched.
     world_map = Map.load(map_path) if map_path is not None else None
-    with claim_run_folder(out):
+    with claim_run_folder(out, [p for p in [dataset.groundtruth_path] if p is not None]):
         write_text_atomic(
             out / "config.yaml", resolved.replaced(cfg, "dataset or topic options").to_yaml()
         )
