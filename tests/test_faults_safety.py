@@ -97,6 +97,30 @@ def test_no_code_from_the_working_directory_or_the_dataset_runs(
     expect_handled("modules planted in the working directory and the dataset", isolated)
 
 
+def test_spawned_workers_of_the_cli_skip_the_working_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """multiprocessing's spawn starts `python -c ...`: the working directory came first on
+    the worker's path, so a planted multiprocessing.py ran in every suite worker."""
+    from planeslam.app.cli import main
+    from planeslam.eval.executors import Job, run_in_processes
+
+    marker = tmp_path / "planted-code-ran"
+    (tmp_path / "multiprocessing.py").write_text(
+        f"open({str(marker)!r}, 'a').write('ran')\nraise SystemExit(97)\n"
+    )
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("PYTHONSAFEPATH", raising=False)  # restored after the test
+    with pytest.raises(SystemExit):
+        main(["--version"])
+
+    def isolated() -> None:
+        ((_, pid),) = list(run_in_processes([Job(os.getpid, ())], 1))
+        assert isinstance(pid, int) and pid != os.getpid() and not marker.exists()
+
+    expect_handled("multiprocessing.py planted where the suite runs", isolated)
+
+
 # ------------------------------------------------------------------ links in the output folder
 
 

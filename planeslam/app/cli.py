@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import shlex
 import sys
 from collections.abc import Callable, Sequence
@@ -418,7 +419,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def isolate_child_interpreters() -> None:
+    """Every Python this process starts (the suite's and Dask's spawned workers) leaves the
+    working directory off its `sys.path` (PYTHONSAFEPATH, Python >= 3.11), so a module
+    planted there never runs; the iSAM2 worker starts with `-I` itself."""
+    os.environ["PYTHONSAFEPATH"] = "1"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    isolate_child_interpreters()  # the application's choice, as the allocator below
     parser = build_parser()
     args = parser.parse_args(argv)
     args.command_line = shlex.join(["planeslam", *(sys.argv[1:] if argv is None else argv)])
