@@ -70,4 +70,7 @@ def read_run_info(run_dir: str | Path) -> RunInfo:
     missing = {"dataset", "backend"} - data.keys()
     if missing:
         raise EvaluationError(f"{path}: missing {', '.join(sorted(missing))}")
-    return RunInfo(**{k: str(v) for k, v in data.items() if k in names})
+    values = {k: str(v) for k, v in data.items() if k in names}
+    if "\x00" in values["dataset"]:  # no path holds one; os calls raise ValueError on it
+        raise EvaluationError(f"{path}: dataset path holds a NUL character")
+    return RunInfo(**values)

@@ -460,6 +460,17 @@ def test_rrd_naming_a_folder_and_a_dataset_link_loop(pristine: Path, tmp_path: P
     expect_cli_error("--rrd naming a folder", result, r"is a folder; the recording needs a file")
 
 
+def test_run_json_naming_an_impossible_path(tmp_path: Path) -> None:
+    from planeslam.eval.run_info import read_run_info
+
+    (tmp_path / "run.json").write_text(
+        json.dumps({"schema": "planeslam.run/1", "dataset": "a\u0000b", "backend": "isam2"})
+    )
+    expect_error(
+        "run.json dataset with a NUL", EvaluationError, "NUL", lambda: read_run_info(tmp_path)
+    )
+
+
 def test_report_frames_records_stay_json(tmp_path: Path) -> None:
     """frames.jsonl lines written by a run read back (the reader's checks accept them)."""
     path = tmp_path / "frames.jsonl"
