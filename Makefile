@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 DEMO_OUT ?= out/demo
 
-.PHONY: setup demo test test-fast lint bench soak clean
+.PHONY: setup demo test test-fast lint bench soak fuzz clean
 
 setup: $(STAMP)
 
@@ -44,6 +44,12 @@ bench: $(STAMP)
 # child processes, open files and memory are back where they started (a few minutes).
 soak: $(STAMP)
 	$(BIN)/python -m tests.soak
+
+# The property-based fault corpus (tests/test_faults_fuzz.py) with many more examples
+# than the suite's: about 10 minutes on one core (FUZZ_EXAMPLES per reader).
+FUZZ_EXAMPLES ?= 12000
+fuzz: $(STAMP)
+	PLANESLAM_FUZZ=1 PLANESLAM_FUZZ_EXAMPLES=$(FUZZ_EXAMPLES) $(BIN)/python -m pytest -q -p no:cacheprovider tests/test_faults_fuzz.py
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.errors import EvaluationError
 from planeslam.core.resources import peak_rss_mb
 from planeslam.tracking.glitches import PoseGlitches
@@ -238,13 +239,13 @@ def write_metrics(metrics: RunMetrics, path: str | Path) -> Path:
 def read_metrics(path: str | Path) -> RunMetrics:
     """Read a metrics.json written by `write_metrics`."""
     path = Path(path)
+    data = read_json_file(path, EvaluationError, what="metrics file")
+    if not isinstance(data, dict):
+        raise EvaluationError(f"{path}: not a metrics.json (expected a JSON object)")
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
         schema = data.pop("schema", METRICS_SCHEMA)  # files before the key had none
         if schema != METRICS_SCHEMA:
             raise EvaluationError(f"{path}: metrics schema {schema!r}, expected {METRICS_SCHEMA!r}")
         return RunMetrics(**data)
-    except FileNotFoundError:
-        raise EvaluationError(f"{path}: metrics file not found") from None
-    except (json.JSONDecodeError, TypeError, AttributeError) as exc:
+    except TypeError as exc:
         raise EvaluationError(f"{path}: not a metrics.json ({exc})") from None

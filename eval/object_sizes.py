@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -11,6 +10,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.errors import EvaluationError
 
 log = logging.getLogger(__name__)
@@ -105,12 +105,7 @@ def mean_object_size_error(errors: Sequence[Mapping[str, Any]]) -> float | None:
 
 def read_json(path: Path, what: str = "file") -> Any:
     """Parse a JSON file, or raise an EvaluationError naming it and what it should be."""
-    try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise EvaluationError(f"{path}: {what} not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise EvaluationError(f"{path}: not a readable JSON {what} ({exc})") from None
+    return read_json_file(path, EvaluationError, what=what)
 
 
 def object_size_errors_from_files(

@@ -16,6 +16,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from planeslam.core.safe_files import atomic_output
 from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.records import MapPlane
 from planeslam.mapping.world_map import Map
@@ -46,7 +47,8 @@ def view_axes(positions: np.ndarray) -> tuple[tuple[int, int], tuple[int, int]]:
 
 def _save(fig: Figure, path: Path) -> Path:
     FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=DPI)
+    with atomic_output(path) as tmp:  # never through a link planted at `path`
+        fig.savefig(tmp, dpi=DPI, format="png")
     log.debug("wrote %s", path)
     return path
 

@@ -18,8 +18,15 @@ from typing import Any
 import numpy as np
 
 from planeslam import __version__
+from planeslam.core.bounded_parse import (
+    MAX_ABS_NUMBER,
+    MAX_JSON_BYTES,
+    check_tree,
+    load_json,
+    read_text,
+)
 from planeslam.core.errors import EvaluationError
-from planeslam.core.safe_files import write_text_atomic
+from planeslam.core.safe_files import read_regular_file, write_text_atomic
 from planeslam.io.trajectory import read_tum
 from planeslam.mapping.world_map import Map
 from planeslam.tracking.glitches import find_pose_glitches
@@ -42,6 +49,8 @@ MAP_JSON = "map.json"
 TRAJECTORY_TXT = "trajectory.txt"
 MAP_PNG = "map.png"
 TIMELINE_PNG = "frames.png"
+MAX_PICTURE_BYTES = 64 << 20
+"""A picture larger than this is not one of ours: it is not embedded."""
 
 _LABELS = {
     "ate_rmse_m": "ATE RMSE",
@@ -208,25 +217,34 @@ def read_frame_records(path: str | Path) -> list[dict[str, Any]]:
     file and line for anything else."""
     path = Path(path)
     records = []
-    with open(path, encoding="utf-8") as fh:
-        for lineno, line in enumerate(fh, 1):
-            if not line.strip():
-                continue
-            try:
-                record = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise EvaluationError(f"{path}:{lineno}: not JSON ({exc.msg})") from None
-            if not isinstance(record, dict) or not {"index", "path"} <= record.keys():
-                raise EvaluationError(
-                    f"{path}:{lineno}: expected an object with 'index' and 'path'"
-                )
-            records.append(record)
+    text = read_text(path, EvaluationError, MAX_JSON_BYTES, "frames.jsonl")
+    for lineno, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        where = f"{path}:{lineno}"
+        record = load_json(line, where, EvaluationError)
+        check_tree(record, where, EvaluationError, MAX_ABS_NUMBER)
+        if not isinstance(record, dict) or not {"index", "path"} <= record.keys():
+            raise EvaluationError(f"{where}: expected an object with 'index' and 'path'")
+        for key, (kinds, expected) in _RECORD_KEYS.items():
+            value = record.get(key)
+            if key in record and (not isinstance(value, kinds) or isinstance(value, bool)):
+                raise EvaluationError(f"{where}: {key} must be {expected}, got {value!r:.40}")
+        records.append(record)
     return records
+
+
+_RECORD_KEYS: dict[str, tuple[Any, str]] = {
+    "index": (int, "a whole number"),
+    "timestamp": ((int, float), "a number"),
+    "path": (str, "a string"),
+}
+"""Types of the frames.jsonl keys that readers use."""
 
 
 def _image(path: Path, caption: str) -> str:
     """A PNG embedded as a data URI: the page needs no file beside it."""
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    data = base64.b64encode(read_regular_file(path, MAX_PICTURE_BYTES)).decode("ascii")
     return (
         f'<figure><img src="data:image/png;base64,{data}" alt="{html.escape(caption)}">'
         f"<figcaption>{html.escape(caption)}</figcaption></figure>"
@@ -360,8 +378,9 @@ def write_report(
     pictures it shows (map.png, frames.png). Uses, when present: run.json (header: dataset,
     backend, command, version, date), eval.json, metrics.json, frames.jsonl, map.json with
     trajectory.txt, and the ground truth (`groundtruth`, else the run's dataset's
-    groundtruth.txt) for the map picture. Every PNG of the folder is embedded: the page
-    stands alone, with no scripts or external resources.
+    groundtruth.txt) for the map picture. The run's own pictures (map.png, frames.png,
+    trajectory.png, ate_over_time.png; never through a symbolic link) are embedded: the
+    page stands alone, with no scripts or external resources.
 
     Raises EvaluationError when neither eval.json nor metrics.json exists.
     """
@@ -434,10 +453,6 @@ def write_report(
             "<h2>Object sizes against truth</h2>\n"
             + _object_table(evaluation["object_size_errors"])
         )
-    known = {MAP_PNG, TRAJECTORY_PNG, ATE_PNG, TIMELINE_PNG}
-    extra = sorted(p for p in out.glob("*.png") if p.name not in known)
-    if extra:
-        sections.append("<h2>Other pictures</h2>\n" + "\n".join(_image(p, p.name) for p in extra))
     page = f"""<!DOCTYPE html>
 <html lang="en">
 <head>

@@ -11,8 +11,9 @@ from pathlib import Path
 from typing import Any
 
 from planeslam import __version__
+from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.errors import EvaluationError
-from planeslam.core.safe_files import write_text_atomic
+from planeslam.core.safe_files import resolve_path, write_text_atomic
 
 RUN_JSON = "run.json"
 SCHEMA = "planeslam.run/1"
@@ -37,11 +38,15 @@ class RunInfo:
     def now(cls, dataset: str | Path, backend: str, command: str = "") -> RunInfo:
         """A record of a run starting now on `dataset` (made absolute)."""
         started = datetime.now(timezone.utc).isoformat(timespec="seconds")
-        return cls(str(Path(dataset).resolve()), backend, command, __version__, started)
+        return cls(str(resolve_path(dataset)), backend, command, __version__, started)
 
     @property
     def dataset_name(self) -> str:
         return Path(self.dataset).name
+
+
+MAX_RUN_JSON_BYTES = 1 << 20
+"""A run.json is a few hundred bytes; a larger one is not ours."""
 
 
 def write_run_info(info: RunInfo, out_dir: str | Path) -> Path:
@@ -58,14 +63,14 @@ def read_run_info(run_dir: str | Path) -> RunInfo:
         raise EvaluationError(
             f"{path}: not found; is {Path(run_dir)} the output folder of `planeslam run`?"
         )
-    try:
-        data: Any = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise EvaluationError(f"{path}: not JSON ({exc})") from None
+    data: Any = read_json_file(path, EvaluationError, MAX_RUN_JSON_BYTES, "run.json")
     if not isinstance(data, dict) or data.get("schema") != SCHEMA:
         raise EvaluationError(f"{path}: expected a JSON object with schema '{SCHEMA}'")
     names = {f.name for f in fields(RunInfo)}
     missing = {"dataset", "backend"} - data.keys()
     if missing:
         raise EvaluationError(f"{path}: missing {', '.join(sorted(missing))}")
-    return RunInfo(**{k: str(v) for k, v in data.items() if k in names})
+    values = {k: str(v) for k, v in data.items() if k in names}
+    if "\x00" in values["dataset"]:  # no path holds one; os calls raise ValueError on it
+        raise EvaluationError(f"{path}: dataset path holds a NUL character")
+    return RunInfo(**values)

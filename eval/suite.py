@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import logging
 import time
 from collections.abc import Callable
@@ -23,8 +22,10 @@ from typing import Any, Literal
 import numpy as np
 
 from planeslam.config import resolve_config
+from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.config import from_mapping, read_yaml
-from planeslam.core.errors import ConfigError, EvaluationError
+from planeslam.core.errors import ConfigError, DatasetFormatError, EvaluationError
+from planeslam.core.safe_files import atomic_output
 from planeslam.io.sequence import RgbdDataset, open_dataset
 from planeslam.io.trajectory import Trajectory, write_tum
 from planeslam.sim.render import SynthOptions
@@ -277,7 +278,7 @@ def run_job(
         )
         truth_path = root / "truth.json"
         if result.objects is not None and truth_path.is_file():
-            truth = json.loads(truth_path.read_text(encoding="utf-8"))
+            truth = read_json_file(truth_path, DatasetFormatError, what="truth file")
             row["object_size_error_m"] = mean_object_size_error(
                 object_size_errors(result.objects, truth)
             )
@@ -415,7 +416,7 @@ def write_csv(result: SuiteResult, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     names = [f.name for f in fields(SuiteRow)]
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.DictWriter(fh, fieldnames=names)
         writer.writeheader()
         for row in result.rows:

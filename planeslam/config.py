@@ -36,6 +36,7 @@ from planeslam.core.config import (
     to_mapping,
 )
 from planeslam.core.errors import ConfigError
+from planeslam.core.safe_files import resolve_path
 from planeslam.frontend.config import IntersectionConfig, ObjectConfig, SegmentationConfig
 from planeslam.io.config import DatasetConfig
 from planeslam.mapping.config import MapConfig
@@ -148,7 +149,7 @@ def load_camera_yaml(path: Path) -> CameraConfig:
 
 def guess_preset(dataset_dir: Path) -> str | None:
     """Preset implied by a dataset folder's name (TUM 'freiburg1'/'fr1', '7scenes'), if any."""
-    name = dataset_dir.resolve().name.lower()
+    name = resolve_path(dataset_dir).name.lower()
     for key, preset in (
         ("freiburg1", "tum_fr1"),
         ("freiburg2", "tum_fr2"),
@@ -244,8 +245,8 @@ def _file_layers(
                     f"{path}: base {base!r} is neither a preset ({', '.join(PRESETS)}) nor a "
                     f"YAML file ({base_path} not found)"
                 )
-            seen = chain + (path.resolve(),)
-            if base_path.resolve() in seen:
+            seen = chain + (resolve_path(path),)
+            if resolve_path(base_path) in seen:
                 raise ConfigError(f"{path}: base {base!r} leads back to {base_path} (a cycle)")
             below = _file_layers(base_path, fallback, seen)
     return below + [ConfigLayer(data, str(path), f"file {path}")]

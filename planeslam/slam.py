@@ -377,7 +377,10 @@ class SLAM:
             if step is None or self._odometry_since_keyframe is None
             else self._odometry_since_keyframe.then(step)
         )
-        if index == 0 and not self._in_given_map:
+        valid = np.count_nonzero(depth_m > 0)  # clean_depth set NaN and +-inf to 0
+        if not valid:  # a blind sensor: nothing to track with, and no segment starts on it
+            track = TrackResult(T_pred, TrackingPath.LOST, "no valid depth: no plane or point")
+        elif self._last_tracked is None and not self._in_given_map:  # the first frame seen
             track = TrackResult(self._T_world_first, TrackingPath.FIRST, "first frame")
             self.tracker.start(observation, self._T_world_first, rgb, depth_m)
         else:
@@ -385,7 +388,7 @@ class SLAM:
                 observation, self.map_view(), T_pred, rgb, depth_m, self._last_tracked
             )
         joined = None
-        if self._segment is not None or (track.lost and self.config.tracking.segments):
+        if valid and (self._segment is not None or (track.lost and self.config.tracking.segments)):
             track, joined = self._segment_step(index, observation, rgb, depth_m, track)
         T_world_cam = orthonormalize_pose(track.T_world_cam)
         stage_ms["tracking"] = 1e3 * (time.perf_counter() - t0)
@@ -403,7 +406,6 @@ class SLAM:
             self._frame_terms[index] = track.terms
         if joined is not None:
             self._join(index, joined)
-        valid = np.count_nonzero(depth_m > 0)  # clean_depth set NaN and +-inf to 0
         self.pointcloud_bytes += POINT_BYTES * int(valid)
         if track.lost:
             logger.info("frame %d (%.3f s) lost: %s", index, timestamp, track.reason)

@@ -113,7 +113,7 @@ def test_overrides_take_yaml_values_with_the_type_checks(fr1_folder: Path):
         ("segmentation.organized.pixel_stride=5", "pixel_stride must be 1, 2"),
         ("lag_frames=0", "expected section.key=value"),
         ("backend.lag_frames", "expected section.key=value"),
-        ("camera.fx=[1, 2", "the value is not YAML"),
+        ("camera.fx=[1, 2", "not a YAML value"),
     ],
 )
 def test_bad_overrides_name_the_option(text: str, message: str):

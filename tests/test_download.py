@@ -242,3 +242,19 @@ def test_cli(
     assert f"planeslam run {tmp_path / 'd' / FOLDER}" in out and "tum_fr1" in out
     assert main(["download", "tum", "fr2/desk", "--dir", str(tmp_path), "--base-url", url]) == 2
     assert "HTTP 404" in capsys.readouterr().err
+
+
+def test_a_part_file_planted_as_a_link_is_not_written_through(
+    server: tuple[str, Served], archive: bytes, tmp_path: Path
+) -> None:
+    """`open(part, 'ab')` followed a link planted at the .part name and appended the
+    archive to whatever file it named."""
+    url, served = server
+    served.files[ARCHIVE_PATH] = archive
+    victim = tmp_path / "victim.txt"
+    victim.write_text("precious\n")
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / f"{FOLDER}.tgz.part").symlink_to(victim)
+    with pytest.raises(OSError, match="symbolic link"):
+        download_tum("fr1/xyz", tmp_path / "data", url)
+    assert victim.read_text() == "precious\n"

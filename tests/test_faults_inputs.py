@@ -386,6 +386,24 @@ def test_frames_without_depth_or_planes_are_lost_with_a_reason(frames, backend: 
         expect_handled(f"{case} ({backend})", lost_then_tracked)
 
 
+def test_a_sequence_without_depth_from_its_first_frame_is_lost_not_tracked(frames) -> None:
+    """A blind sensor (every depth pixel 0 from the first frame) gave 100 % tracked with
+    identical poses; every such frame is lost, and the first frame with depth starts."""
+    cfg, fs = frames
+
+    def all_lost() -> None:
+        slam = SLAM(cfg, "merge")
+        blind = [slam.process(np.zeros_like(f.depth_m), f.timestamp, f.rgb) for f in fs[:3]]
+        assert all(r.lost and "no valid depth" in r.reason for r in blind)
+        assert slam.tracked_frames == 0 and not slam.map.planes
+        seen = slam.process(fs[3].depth_m, fs[3].timestamp, fs[3].rgb)
+        assert seen.path.value == "first" and seen.keyframe
+        slam.finish()
+        assert len(slam.trajectory()) == 1
+
+    expect_handled("sequence with no valid depth from the first frame", all_lost)
+
+
 def test_a_parallel_planes_frame_after_tracked_ones_is_lost_not_slid(frames) -> None:
     """Frame 2 with depth only on parallel planes, after two tracked frames: RGB-D odometry
     from the prediction found no pose near the truth (143 cm off a 140 cm motion) and the
@@ -435,7 +453,7 @@ CAMERA_FAULTS = [
         r"unknown key\(s\) focal; valid keys: fx",
     ),
     ("camera.yaml text fx", "fx: wide\n", ConfigError, r"fx expects a number, got 'wide'"),
-    ("camera.yaml zero width", "width: 0\n", ConfigError, r"camera size must be positive"),
+    ("camera.yaml zero width", "width: 0\n", ConfigError, r"image size 0x480 outside"),
     ("camera.yaml NaN centre", "cx: .nan\n", ConfigError, r"camera.cx must be a finite number"),
     ("camera.yaml infinite width", "width: .inf\n", ConfigError, r"width expects a whole number"),
     (

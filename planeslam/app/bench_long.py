@@ -29,6 +29,7 @@ from planeslam.config import ConfigLayer, resolve_config
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.core.geometry import pose_distances
 from planeslam.core.resources import rss_mb
+from planeslam.core.safe_files import write_text_atomic
 from planeslam.eval.trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, format_tum_row, read_tum
@@ -88,7 +89,7 @@ def replay_sequence(source: Path, target: Path, passes: int, rate_hz: float = 30
             lines["groundtruth.txt"].append(format_tum_row(t, pose))
     header = f"# replay of {source}: {passes} passes, {len(order)} frames at {rate_hz} Hz\n"
     for name, rows in lines.items():
-        (target / name).write_text(header + "\n".join(rows) + "\n", encoding="utf-8")
+        write_text_atomic(target / name, header + "\n".join(rows) + "\n")
     return target
 
 
@@ -397,7 +398,7 @@ def bench_long(
                 replay, frames_per_pass - 1, block, config, progress, blocks_path, overrides, seed
             )
         )
-        (out_dir / "long.md").write_text(long_text(results) + "\n", encoding="utf-8")
+        write_text_atomic(out_dir / "long.md", long_text(results) + "\n")
     return results
 
 

@@ -9,12 +9,14 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import shlex
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from planeslam import __version__
+from planeslam.app.arg_types import COUNT, SEED, number, whole
 from planeslam.app.calibrate import add_calibrate_command
 from planeslam.app.config_command import (
     add_config_command,
@@ -82,7 +84,7 @@ def _add_demo(sub: argparse._SubParsersAction) -> None:
         "and where the outputs are.",
     )
     p.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("--seed", type=SEED, default=0, help="noise seed (default 0)")
     p.set_defaults(func=_cmd_demo)
 
 
@@ -109,9 +111,17 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("estimate", type=Path, help="estimated TUM trajectory file")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: ESTIMATE's)")
     p.add_argument(
-        "--max-dt", type=float, default=0.02, help="pose association window [s] (default 0.02)"
+        "--max-dt",
+        type=number(0, 10, open_low=True),
+        default=0.02,
+        help="pose association window [s] (default 0.02)",
     )
-    p.add_argument("--rpe-delta", type=float, default=1.0, help="RPE span [s] (default 1.0)")
+    p.add_argument(
+        "--rpe-delta",
+        type=number(0, 1e6, open_low=True),
+        default=1.0,
+        help="RPE span [s] (default 1.0)",
+    )
     p.add_argument("--truth", type=Path, default=None, help="truth.json of a synthetic scene")
     p.add_argument("--map", type=Path, default=None, help="map.json with estimated objects")
     p.set_defaults(func=_cmd_eval)
@@ -156,16 +166,22 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
     )
     add_config_options(p)
     add_topic_options(p)
-    p.add_argument("--out", type=Path, default=None, help="output folder (default out/<name>)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default out/<dataset name>); a previous run's files there are "
+        "moved into previous-<time>/",
+    )
     p.add_argument(
         "--backend",
         choices=tuple(k.value for k in BackendKind),
         default=None,
         help="isam2: GTSAM factor graph (default); merge: the paper's frame-by-frame merging",
     )
-    p.add_argument("--max-frames", type=int, default=None, help="process at most N frames")
-    p.add_argument("--every", type=int, default=None, help="use every K-th frame (default 1)")
-    p.add_argument("--seed", type=int, default=None, help="random seed (default 0)")
+    p.add_argument("--max-frames", type=COUNT, default=None, help="process at most N frames")
+    p.add_argument("--every", type=COUNT, default=None, help="use every K-th frame (default 1)")
+    p.add_argument("--seed", type=SEED, default=None, help="random seed (default 0)")
     p.add_argument(
         "--start-pose",
         choices=("groundtruth", "identity"),
@@ -187,10 +203,11 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from planeslam.app.run_folder import default_out_dir
     from planeslam.app.runner import run_sequence
 
-    out = args.out if args.out is not None else Path("out") / args.dataset.name
-    with viewer_from_args(args, args.dataset.name) as viewer:
+    out = args.out if args.out is not None else default_out_dir(args.dataset)
+    with viewer_from_args(args, default_out_dir(args.dataset).name) as viewer:
         result = run_sequence(
             args.dataset,
             out,
@@ -224,7 +241,7 @@ def _add_frame(sub: argparse._SubParsersAction) -> None:
         "write frame.json (camera frame) and overlay.png.",
     )
     p.add_argument("dataset", type=Path, help="TUM-layout folder, ROS 1 .bag or ROS 2 bag folder")
-    p.add_argument("index", type=int, help="frame index (0-based, in association order)")
+    p.add_argument("index", type=whole(0), help="frame index (0-based, in association order)")
     add_config_options(p)
     add_topic_options(p)
     p.add_argument("--out", type=Path, default=None, help="output folder (default out/frame)")
@@ -261,11 +278,11 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "synthetic scene.",
     )
     f.add_argument("dataset", type=Path, nargs="?", default=None, help="dataset folder")
-    f.add_argument("--frames", type=int, default=30, help="frames to time (default 30)")
+    f.add_argument("--frames", type=COUNT, default=30, help="frames to time (default 30)")
     add_config_options(f)
     f.add_argument(
         "--reference-frames",
-        type=int,
+        type=whole(0),
         default=3,
         help="frames for the slow Open3D segment_plane reference (default 3)",
     )
@@ -284,7 +301,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     s.add_argument("suite", type=Path, nargs="?", default=None, help="suite YAML")
     s.add_argument(
         "--jobs",
-        type=int,
+        type=COUNT,
         default=None,
         help="runs at once (default 1: fps figures need the machine to themselves)",
     )
@@ -313,13 +330,15 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "SOURCE: a TUM folder with associations.txt and groundtruth.txt, or a synthetic scene.",
     )
     long.add_argument("source", help="dataset folder or synthetic scene name")
-    long.add_argument("--passes", type=int, default=5, help="passes over the sequence (default 5)")
-    long.add_argument("--block", type=int, default=1000, help="frames per block (default 1000)")
+    long.add_argument(
+        "--passes", type=COUNT, default=5, help="passes over the sequence (default 5)"
+    )
+    long.add_argument("--block", type=COUNT, default=1000, help="frames per block (default 1000)")
     add_config_option(long)
     add_override_option(long)
     long.add_argument(
         "--seeds",
-        type=int,
+        type=SEED,
         nargs="+",
         default=[0],
         metavar="SEED",
@@ -540,7 +559,15 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def isolate_child_interpreters() -> None:
+    """Every Python this process starts (the suite's and Dask's spawned workers) leaves the
+    working directory off its `sys.path` (PYTHONSAFEPATH, Python >= 3.11), so a module
+    planted there never runs; the iSAM2 worker starts with `-I` itself."""
+    os.environ["PYTHONSAFEPATH"] = "1"
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    isolate_child_interpreters()  # the application's choice, as the allocator below
     parser = build_parser()
     args = parser.parse_args(argv)
     args.command_line = shlex.join(["planeslam", *(sys.argv[1:] if argv is None else argv)])

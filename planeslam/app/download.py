@@ -15,6 +15,7 @@ from planeslam.app.progress import byte_progress
 from planeslam.config import load_config
 from planeslam.core.config import to_mapping
 from planeslam.core.errors import ConfigError
+from planeslam.core.safe_files import write_text_atomic
 from planeslam.io.tum_download import (
     TUM_BASE_URL,
     TUM_SEQUENCES,
@@ -55,14 +56,14 @@ def write_camera_yaml(result: DownloadResult) -> Path:
     folder's camera.yaml, which `resolve_config` reads whatever the folder is called.
     An existing camera.yaml is left as it is."""
     path = result.folder / "camera.yaml"
-    if not path.is_file():
+    if not os.path.lexists(path):  # a link there (even dangling) is not written through
         preset = result.sequence.preset
         camera = to_mapping(load_config(preset).camera)
         header = (
             f"# TUM RGB-D {result.sequence.name}: the calibration of preset {preset},\n"
             f"# written by `planeslam download`.\n"
         )
-        path.write_text(header + yaml.safe_dump(camera, sort_keys=False), encoding="utf-8")
+        write_text_atomic(path, header + yaml.safe_dump(camera, sort_keys=False))
     return path
 
 

@@ -15,6 +15,7 @@ from planeslam.app.overlay import draw_overlay, format_size, write_png
 from planeslam.config import ConfigLayer, open_configured, resolve_config
 from planeslam.core.config import save_yaml
 from planeslam.core.errors import DatasetFormatError
+from planeslam.core.safe_files import write_text_atomic
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
 
 log = logging.getLogger(__name__)
@@ -92,9 +93,7 @@ def process_frame(
     data = observation.to_dict()
     data["dataset"] = str(dataset_dir)
     data["index"] = int(index)
-    with open(frame_json, "w", encoding="utf-8") as fh:
-        json.dump(data, fh, indent=1)
-        fh.write("\n")
+    write_text_atomic(frame_json, json.dumps(data, indent=1) + "\n")
     overlay_png = write_png(
         out_dir / "overlay.png", draw_overlay(frame.rgb, observation, cfg.camera)
     )

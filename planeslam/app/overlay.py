@@ -21,6 +21,7 @@ import numpy as np
 
 from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import DatasetFormatError
+from planeslam.core.safe_files import atomic_output
 
 log = logging.getLogger(__name__)
 
@@ -286,7 +287,7 @@ def write_png(path: str | Path, image: np.ndarray) -> Path:
         raise DatasetFormatError(
             f"{path}: expected an (H, W, 3) uint8 RGB image, got {image.shape}"
         )
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
-        raise DatasetFormatError(f"{path}: could not write the PNG image")
+    with atomic_output(path, keep_suffix=True) as tmp:  # never through a link at `path`
+        if not cv2.imwrite(str(tmp), cv2.cvtColor(image, cv2.COLOR_RGB2BGR)):
+            raise DatasetFormatError(f"{path}: could not write the PNG image")
     return path

@@ -7,6 +7,7 @@ import argparse
 import json
 from pathlib import Path
 
+from planeslam.app.arg_types import COUNT
 from planeslam.app.config_command import add_config_options, camera_option, override_layers
 
 
@@ -25,7 +26,7 @@ def add_relocalise_command(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("dataset", type=Path, help="TUM-layout folder with groundtruth.txt")
     p.add_argument("--map", type=Path, default=None, help="map.json to place frames in")
-    p.add_argument("--every", type=int, default=10, help="every n-th frame (default 10)")
+    p.add_argument("--every", type=COUNT, default=10, help="every n-th frame (default 10)")
     add_config_options(p)
     p.add_argument(
         "--json", action="store_true", help="print one JSON object (the summary and every attempt)"

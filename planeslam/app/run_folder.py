@@ -1,10 +1,17 @@
-"""A finished run's output folder read back for `planeslam view` and `planeslam mesh`:
-run.json (the dataset), config.yaml, trajectory.txt (final poses), frames.jsonl."""
+"""A run's output folder: claimed by a run (`claim_run_folder`: a lock, the previous run's
+files moved aside), and read back when finished for `planeslam view` and `planeslam mesh`
+(`open_run`: run.json (the dataset), config.yaml, trajectory.txt (final poses),
+frames.jsonl)."""
 
 from __future__ import annotations
 
+import itertools
+import logging
+import os
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
@@ -13,13 +20,104 @@ import numpy as np
 from planeslam.config import PlaneSlamConfig, load_config
 from planeslam.core.camera import CameraConfig
 from planeslam.core.config import from_mapping, read_yaml
-from planeslam.core.errors import DatasetFormatError, EvaluationError
-from planeslam.eval.report import FRAMES_JSONL, TRAJECTORY_TXT, read_frame_records
-from planeslam.eval.run_info import read_run_info
+from planeslam.core.errors import DatasetFormatError, EvaluationError, OutputFolderError
+from planeslam.core.safe_files import FolderLock, resolve_path
+from planeslam.eval.report import (
+    ATE_PNG,
+    EVAL_JSON,
+    FRAMES_JSONL,
+    MAP_JSON,
+    MAP_PNG,
+    METRICS_JSON,
+    REPORT_HTML,
+    TIMELINE_PNG,
+    TRAJECTORY_PNG,
+    TRAJECTORY_TXT,
+    read_frame_records,
+)
+from planeslam.eval.run_info import RUN_JSON, read_run_info
 from planeslam.io.config import DatasetConfig
 from planeslam.io.dataset import Frame, associate_timestamps
 from planeslam.io.sequence import RgbdDataset, open_dataset
 from planeslam.io.trajectory import Trajectory, read_tum
+
+log = logging.getLogger(__name__)
+
+RUN_OUTPUTS = (
+    "config.yaml",
+    RUN_JSON,
+    TRAJECTORY_TXT,
+    FRAMES_JSONL,
+    MAP_JSON,
+    "map_planes.ply",
+    "map_points.ply",
+    METRICS_JSON,
+    EVAL_JSON,
+    TRAJECTORY_PNG,
+    ATE_PNG,
+    MAP_PNG,
+    TIMELINE_PNG,
+    REPORT_HTML,
+    "groundtruth.txt",
+    "mesh.ply",
+    "run.rrd",
+)
+"""Every file a run (and `planeslam mesh` / `view` after it) writes into its folder."""
+
+PREVIOUS_PREFIX = "previous-"
+
+
+def default_out_dir(dataset: str | Path) -> Path:
+    """out/<name> from the dataset's resolved path ('..' and '.' name their folder)."""
+    return Path("out") / (resolve_path(dataset).name or "dataset")
+
+
+@contextmanager
+def claim_run_folder(out: str | Path, inputs: Sequence[Path] = ()) -> Iterator[Path | None]:
+    """Own `out` for a run: hold its lock (`FolderLock`: OutputFolderError naming the live
+    run that holds it) and move a previous run's files (`RUN_OUTPUTS`, links moved as links)
+    into `out`/previous-<UTC time>/, so a folder never mixes two runs. Other files, and
+    `inputs` the run still reads (a dataset's groundtruth.txt when `out` is the dataset
+    folder), are left alone. Yields where the old files went (None: there were none)."""
+    out = Path(out)
+    with FolderLock(out):
+        yield _move_previous(out, {resolve_path(p) for p in inputs})
+
+
+def _move_previous(out: Path, keep: set[Path]) -> Path | None:
+    found = [
+        name
+        for name in RUN_OUTPUTS
+        if os.path.lexists(out / name) and resolve_path(out / name) not in keep
+    ]
+    if not found:
+        return None
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    aside = out / f"{PREVIOUS_PREFIX}{stamp}"
+    for k in itertools.count(1):
+        try:
+            aside.mkdir()
+            break
+        except FileExistsError:
+            aside = out / f"{PREVIOUS_PREFIX}{stamp}-{k}"
+    for name in found:
+        os.rename(out / name, aside / name)
+    log.info("%s: the previous run's files moved to %s", out, aside)
+    return aside
+
+
+def check_empty_folder(folder: str | Path, overwrite: bool) -> None:
+    """OutputFolderError unless `folder` is absent or empty, or `overwrite` is given."""
+    folder = Path(folder)
+    if overwrite or not folder.exists():
+        return
+    if not folder.is_dir():
+        raise OutputFolderError(f"{folder}: exists and is not a folder")
+    if any(folder.iterdir()):
+        raise OutputFolderError(
+            f"{folder}: folder is not empty; choose another or pass --overwrite"
+        )
+
 
 STAMP_TOLERANCE_S = 1e-4
 """Frames of the run and of the dataset are matched by time stamp within this [s]

@@ -14,6 +14,9 @@ Output folder:
 - metrics.json     speed, memory (map against point cloud, with the breakdown), lost frames;
 - eval.json, trajectory.png, ate_over_time.png  when groundtruth.txt exists;
 - report.html      one self-contained page (figures embedded), map.png its top-down map.
+The run holds the folder's lock while it writes (a second run there is refused) and first
+moves a previous run's files into previous-<time>/ (`run_folder.claim_run_folder`); nothing
+is written before the dataset, the config and the --map have been read and checked.
 The final files are also written when the run is interrupted (Ctrl-C; SIGTERM too under
 the CLI) or fails, from the frames processed so far. Whole files are replaced atomically
 with the usual permissions, trajectory.txt and frames.jsonl grow a whole line per frame
@@ -33,6 +36,7 @@ from typing import Protocol
 from planeslam.app.dataset_options import TopicOverrides
 from planeslam.app.progress import progress_bar
 from planeslam.app.ros_export import check_bag_destination, write_results_bag
+from planeslam.app.run_folder import claim_run_folder
 from planeslam.app.signals import deferred_interrupts
 from planeslam.config import PlaneSlamConfig, explain_config, open_configured
 from planeslam.core.config import ConfigLayer, override_layer
@@ -200,81 +204,83 @@ def run_sequence(
     indices = frame_indices(len(dataset), run.max_frames, run.every)
     if not indices:
         raise ConfigError(f"{root}: no frames to process")
-    out.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(
-        out / "config.yaml", resolved.replaced(cfg, "dataset or topic options").to_yaml()
-    )
-    write_run_info(RunInfo.now(root, backend, command), out)
-    if map_path is not None:
-        slam = SLAM(cfg, map=Map.load(map_path), localize=localize)
-    else:
-        slam = slam_for_dataset(cfg, dataset, indices[0])
-    if observer is not None:
-        observer.start(dataset, cfg)
-    summary: RunSummary | None = None
-    with (
-        slam,
-        progress_bar(len(indices), f"{backend} {root.name}", "frame", enabled=progress) as bar,
-        TumWriter(out / "trajectory.txt", header=f"planeslam {backend} online") as writer,
-        LineWriter(out / "frames.jsonl") as frames_log,
-    ):
+    # Inputs and --map are read and checked before the folder is touched.
+    world_map = Map.load(map_path) if map_path is not None else None
+    with claim_run_folder(out, [p for p in [dataset.groundtruth_path] if p is not None]):
+        write_text_atomic(
+            out / "config.yaml", resolved.replaced(cfg, "dataset or topic options").to_yaml()
+        )
+        write_run_info(RunInfo.now(root, backend, command), out)
+        if world_map is not None:
+            slam = SLAM(cfg, map=world_map, localize=localize)
+        else:
+            slam = slam_for_dataset(cfg, dataset, indices[0])
+        if observer is not None:
+            observer.start(dataset, cfg)
+        summary: RunSummary | None = None
+        with (
+            slam,
+            progress_bar(len(indices), f"{backend} {root.name}", "frame", enabled=progress) as bar,
+            TumWriter(out / "trajectory.txt", header=f"planeslam {backend} online") as writer,
+            LineWriter(out / "frames.jsonl") as frames_log,
+        ):
 
-        def on_result(result: FrameResult) -> None:
-            if not result.lost:  # lost frames have no pose (left out, as ORB-SLAM does)
-                writer.write(result.timestamp, result.T_world_cam)
-            frames_log.write_line(json.dumps(result.to_record()))
-            bar.step(result.path.value)
-            if observer is not None:
-                observer.frame(slam, result)
+            def on_result(result: FrameResult) -> None:
+                if not result.lost:  # lost frames have no pose (left out, as ORB-SLAM does)
+                    writer.write(result.timestamp, result.T_world_cam)
+                frames_log.write_line(json.dumps(result.to_record()))
+                bar.step(result.path.value)
+                if observer is not None:
+                    observer.frame(slam, result)
 
-        tally = RunTally()
-        try:
-            summary = run_frames(slam, dataset, indices, on_result, tally, deferred_interrupts)
-        finally:
-            if summary is None:  # interrupted or failed: keep what was computed
-                _write_stopped(slam, out, backend, tally)
-    assert summary is not None
-    metrics = _write_final(slam, out, backend, summary)
-    if out_bag is not None and slam.tracked_frames:
-        write_results_bag(out_bag, slam.trajectory(), slam.map)
-    if observer is not None:
-        observer.finish(slam)
-    evaluation = None
-    warnings: list[str] = []
-    gt_error = getattr(dataset, "groundtruth_error", "")  # a TUM folder's unreadable truth
-    if gt_error:
-        warnings.append(f"not evaluated: {gt_error}")
-    if dataset.groundtruth is not None:
-        gt_path = dataset.groundtruth_path
-        if gt_path is None:  # from a bag's /tf: kept beside the outputs for `planeslam eval`
-            gt_path = out / "groundtruth.txt"
-            write_tum(gt_path, dataset.groundtruth, header=f"ground truth from {root} /tf")
-        try:
-            evaluation = evaluate_to_folder(
-                gt_path,
-                out / "trajectory.txt",
-                out,
-                cfg.dataset.max_time_difference_s,
-                tracked_fraction=metrics.tracked_fraction,
-            )
-            warnings.extend(evaluation.warnings)
-        except PlaneSlamError as exc:  # SLAM's outputs stand without it
-            tracked = f"{slam.tracked_frames} of {slam.frames} frames tracked"
-            warnings.append(f"no ATE ({tracked}): {exc}")
-            logger.warning("%s", warnings[-1])
-    if evaluation is None:
-        try:
-            write_report(out)
-        except PlaneSlamError as exc:
-            warnings.append(f"report.html not written: {exc}")
-            logger.warning("%s", warnings[-1])
-    return RunResult(
-        out_dir=out,
-        summary=summary,
-        metrics=metrics,
-        evaluation=evaluation,
-        warnings=tuple(warnings),
-    )
+            tally = RunTally()
+            try:
+                summary = run_frames(slam, dataset, indices, on_result, tally, deferred_interrupts)
+            finally:
+                if summary is None:  # interrupted or failed: keep what was computed
+                    _write_stopped(slam, out, backend, tally)
+        assert summary is not None
+        metrics = _write_final(slam, out, backend, summary)
+        if out_bag is not None and slam.tracked_frames:
+            write_results_bag(out_bag, slam.trajectory(), slam.map)
+        if observer is not None:
+            observer.finish(slam)
+        evaluation = None
+        warnings: list[str] = []
+        gt_error = getattr(dataset, "groundtruth_error", "")  # a TUM folder's unreadable truth
+        if gt_error:
+            warnings.append(f"not evaluated: {gt_error}")
+        if dataset.groundtruth is not None:
+            gt_path = dataset.groundtruth_path
+            if gt_path is None:  # from a bag's /tf: kept beside the outputs for `planeslam eval`
+                gt_path = out / "groundtruth.txt"
+                write_tum(gt_path, dataset.groundtruth, header=f"ground truth from {root} /tf")
+            try:
+                evaluation = evaluate_to_folder(
+                    gt_path,
+                    out / "trajectory.txt",
+                    out,
+                    cfg.dataset.max_time_difference_s,
+                    tracked_fraction=metrics.tracked_fraction,
+                )
+                warnings.extend(evaluation.warnings)
+            except PlaneSlamError as exc:  # SLAM's outputs stand without it
+                tracked = f"{slam.tracked_frames} of {slam.frames} frames tracked"
+                warnings.append(f"no ATE ({tracked}): {exc}")
+                logger.warning("%s", warnings[-1])
+        if evaluation is None:
+            try:
+                write_report(out)
+            except PlaneSlamError as exc:
+                warnings.append(f"report.html not written: {exc}")
+                logger.warning("%s", warnings[-1])
+        return RunResult(
+            out_dir=out,
+            summary=summary,
+            metrics=metrics,
+            evaluation=evaluation,
+            warnings=tuple(warnings),
+        )
 
 
 def _write_stopped(slam: SLAM, out: Path, backend: str, tally: RunTally) -> None:

@@ -8,6 +8,7 @@ import logging
 from pathlib import Path
 
 from planeslam.app.progress import progress_bar
+from planeslam.core.safe_files import write_text_atomic
 from planeslam.eval.suite import (
     SuiteRow,
     load_suite,
@@ -73,6 +74,6 @@ def run_suite_command(
 
         result = run_suite(config, base_dir.resolve(), out.resolve(), on_row)
     table = to_markdown(result)
-    (out / "suite.md").write_text(table, encoding="utf-8")
+    write_text_atomic(out / "suite.md", table)
     write_csv(result, out / "suite.csv")
     return table + f"\nwritten: {out / 'suite.md'}, {out / 'suite.csv'}"

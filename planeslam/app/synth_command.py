@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from planeslam.app.arg_types import SEED, number, whole
 from planeslam.core.errors import ConfigError
 
 
@@ -32,9 +33,16 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
         "texture; the scene's geometry and truth stay the same.",
     )
     p.add_argument("scene", choices=sorted(SCENES), help="scene to render")
-    p.add_argument("outdir", type=Path, help="output folder (created)")
-    p.add_argument("--frames", type=int, default=None, help="number of frames (default: scene's)")
-    p.add_argument("--seed", type=int, default=0, help="noise seed (default 0)")
+    p.add_argument("outdir", type=Path, help="output folder (created; must be empty)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="render into OUTDIR even when it is not empty (its files are replaced)",
+    )
+    p.add_argument(
+        "--frames", type=whole(1, 100_000), default=None, help="number of frames (default: scene's)"
+    )
+    p.add_argument("--seed", type=SEED, default=0, help="noise seed (default 0)")
     p.add_argument(
         "--noise-model",
         choices=sorted(NOISE_MODELS),
@@ -44,26 +52,34 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--hfov",
-        type=float,
+        type=number(1, 179),
         default=None,
         metavar="DEG",
         help="horizontal field of view [deg] (default 62.7: fx 525 px at 640 px)",
     )
     p.add_argument(
-        "--camera-height", type=float, default=None, metavar="M", help="camera height [m]"
+        "--camera-height",
+        type=number(-100, 100),
+        default=None,
+        metavar="M",
+        help="camera height [m]",
     )
     p.add_argument(
-        "--look-height", type=float, default=None, metavar="M", help="look-at height [m]"
+        "--look-height",
+        type=number(-100, 100),
+        default=None,
+        metavar="M",
+        help="look-at height [m]",
     )
     p.add_argument(
         "--start-azimuth",
-        type=float,
+        type=number(-360, 360),
         default=None,
         metavar="DEG",
         help="first azimuth on the circle [deg] (box_room_circle)",
     )
     p.add_argument(
-        "--texture-seed", type=int, default=None, metavar="N", help="seed of the planes' texture"
+        "--texture-seed", type=SEED, default=None, metavar="N", help="seed of the planes' texture"
     )
     p.add_argument(
         "--texture-brightness",
@@ -76,8 +92,11 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 
 def _cmd_synth(args: argparse.Namespace) -> int:
+    from planeslam.app.run_folder import check_empty_folder
     from planeslam.sim.render import SynthOptions, render_sequence
     from planeslam.sim.scenes import SceneOptions, Texture
+
+    check_empty_folder(args.outdir, args.overwrite)
 
     texture = None
     if args.texture_seed is not None or args.texture_brightness is not None:

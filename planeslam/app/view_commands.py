@@ -11,10 +11,16 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from planeslam.app.arg_types import COUNT, number
+
 if TYPE_CHECKING:
     from planeslam.app.viewer import RerunViewer
 
 log = logging.getLogger(__name__)
+
+MIN_VOXEL_M = 0.001
+"""Smallest TSDF voxel [m]: finer grids of a room need more memory than a machine has."""
+MAX_VOXEL_M = 1.0
 
 
 def add_viewer_options(p: argparse.ArgumentParser) -> None:
@@ -57,7 +63,7 @@ def add_view_command(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("run_dir", type=Path, help="output folder of `planeslam run`")
     p.add_argument("--rrd", type=Path, default=None, help="write this .rrd file instead")
-    p.add_argument("--every", type=int, default=1, help="log every K-th frame (default 1)")
+    p.add_argument("--every", type=COUNT, default=1, help="log every K-th frame (default 1)")
     p.add_argument("--dataset", type=Path, default=None, help="dataset folder (default: run's)")
     p.set_defaults(func=_cmd_view)
 
@@ -88,9 +94,17 @@ def add_mesh_command(sub: argparse._SubParsersAction) -> None:
         "names (or --dataset).",
     )
     p.add_argument("run_dir", type=Path, help="output folder of `planeslam run`")
-    p.add_argument("--voxel", type=float, default=0.01, help="voxel edge [m] (default 0.01)")
     p.add_argument(
-        "--depth-max", type=float, default=3.0, help="ignore depth beyond this [m] (default 3)"
+        "--voxel",
+        type=number(MIN_VOXEL_M, MAX_VOXEL_M),
+        default=0.01,
+        help=f"voxel edge [m] (default 0.01; {MIN_VOXEL_M:g} to {MAX_VOXEL_M:g})",
+    )
+    p.add_argument(
+        "--depth-max",
+        type=number(0, 100, open_low=True),
+        default=3.0,
+        help="ignore depth beyond this [m] (default 3)",
     )
     p.add_argument("--all-frames", action="store_true", help="fuse every frame, not keyframes")
     p.add_argument("--dataset", type=Path, default=None, help="dataset folder (default: run's)")

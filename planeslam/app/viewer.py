@@ -394,6 +394,8 @@ def open_recording(name: str, rrd: str | Path | None, live: bool) -> tuple[Any, 
     spawns (ConfigError without a display: record to an .rrd file instead). Returns it and
     a phrase saying where the data goes."""
     rr = _rerun()
+    if rrd is not None and Path(rrd).is_dir():
+        raise ConfigError(f"{rrd}: is a folder; the recording needs a file name (e.g. run.rrd)")
     if rrd is None and not live:
         raise ConfigError("nowhere to send the recording: give an .rrd file or ask for live")
     if live and not has_display():

@@ -20,7 +20,6 @@ from __future__ import annotations
 import collections
 import logging
 import multiprocessing
-import os
 import queue
 import signal
 import subprocess
@@ -28,6 +27,7 @@ import sys
 import threading
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -256,20 +256,34 @@ def _start_worker(config: BackendConfig) -> tuple[subprocess.Popen, Connection]:
     state, and 'spawn' re-runs the caller's main script (a script without an
     `if __name__ == "__main__"` guard would start SLAM again in the child). Only the
     connection comes from multiprocessing: one end of its `Pipe`, passed by descriptor.
+
+    The child runs isolated (`python -I`): neither the working directory (`-c` would put it
+    first on `sys.path`, so a gtsam.py there would run) nor PYTHONPATH nor the user's
+    site-packages; `child_path` adds back the folder planeslam itself was imported from.
     """
     conn, child_conn = multiprocessing.Pipe()
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
     process = subprocess.Popen(
-        [sys.executable, "-c", _CHILD_CODE, str(child_conn.fileno())],
+        [sys.executable, "-I", "-c", _CHILD_CODE, str(child_conn.fileno()), *child_path()],
         pass_fds=(child_conn.fileno(),),
-        env=env,
     )
     child_conn.close()
     conn.send(config)
     return process, conn
 
 
-_CHILD_CODE = "import sys; from planeslam.backend.worker import serve; serve(int(sys.argv[1]))"
+def child_path() -> list[str]:
+    """Folders an isolated child appends to its `sys.path` to import planeslam as this
+    process did: the folder holding the planeslam package (a checkout run without
+    installing), last, so it never shadows an installed module."""
+    import planeslam
+
+    return [str(Path(planeslam.__file__).resolve().parents[1])]
+
+
+_CHILD_CODE = (
+    "import sys; sys.path.extend(sys.argv[2:]); "
+    "from planeslam.backend.worker import serve; serve(int(sys.argv[1]))"
+)
 
 
 _IN_CHILD = False

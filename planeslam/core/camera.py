@@ -9,6 +9,18 @@ import numpy as np
 
 from planeslam.core.errors import ConfigError
 
+MAX_IMAGE_SIDE = 8192
+"""Largest image width or height accepted [pixels], checked before anything is allocated
+(from camera.yaml, a bag's camera_info, an image file's header)."""
+
+
+def check_image_size(width: int, height: int, where: str, error: type[Exception]) -> None:
+    """`error` naming `where` unless 0 < width, height <= MAX_IMAGE_SIDE."""
+    if not (0 < width <= MAX_IMAGE_SIDE and 0 < height <= MAX_IMAGE_SIDE):
+        raise error(
+            f"{where}: image size {width}x{height} outside 1..{MAX_IMAGE_SIDE} pixels a side"
+        )
+
 
 @dataclass(frozen=True)
 class CameraConfig:
@@ -42,8 +54,7 @@ class CameraConfig:
                 raise ConfigError(
                     f"camera.{name} must be a finite number, got {getattr(self, name)!r}"
                 )
-        if self.width <= 0 or self.height <= 0:
-            raise ConfigError(f"camera size must be positive, got {self.width}x{self.height}")
+        check_image_size(self.width, self.height, "camera", ConfigError)
         if len(self.distortion) not in (0, 4, 5, 8):
             raise ConfigError(
                 f"camera.distortion needs 0, 4, 5 or 8 coefficients, got {len(self.distortion)}"

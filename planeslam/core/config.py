@@ -21,7 +21,9 @@ from typing import Any, TypeVar
 
 import yaml
 
+from planeslam.core.bounded_parse import load_yaml, read_yaml_file, shown
 from planeslam.core.errors import ConfigError
+from planeslam.core.safe_files import write_text_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +46,7 @@ def from_mapping(cls: type[T], data: Any, source: str, section: str = "") -> T:
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise ConfigError(
-            f"{where}: unknown key(s) {', '.join(map(str, unknown))}; "
+            f"{where}: unknown key(s) {', '.join(map(shown, unknown))}; "
             f"valid keys: {', '.join(fields)}"
         )
     hints = typing.get_type_hints(cls)
@@ -119,15 +121,8 @@ def _coerce(hint: Any, value: Any, source: str, key: str) -> Any:
 
 
 def read_yaml(path: Path) -> Any:
-    """Parse a YAML file, or raise a ConfigError naming it."""
-    try:
-        with open(path, encoding="utf-8") as fh:
-            return yaml.safe_load(fh)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConfigError(f"{path}: not a readable YAML file ({reason})") from None
+    """Parse a YAML file within `bounded_parse`'s limits, or raise a ConfigError naming it."""
+    return read_yaml_file(path, ConfigError, "config file")
 
 
 def to_mapping(obj: Any) -> Any:
@@ -140,10 +135,8 @@ def to_mapping(obj: Any) -> Any:
 
 
 def save_yaml(obj: Any, path: Path) -> None:
-    """Write a dataclass (a resolved config) as YAML."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w", encoding="utf-8") as fh:
-        yaml.safe_dump(to_mapping(obj), fh, sort_keys=False)
+    """Write a dataclass (a resolved config) as YAML (atomically, never through a link)."""
+    write_text_atomic(path, yaml.safe_dump(to_mapping(obj), sort_keys=False))
 
 
 # ------------------------------------------------------------------------------ layers
@@ -182,12 +175,8 @@ def parse_override(text: str, label: str = "override") -> ConfigLayer:
     if _FLOAT_E.fullmatch(raw):
         value: Any = float(raw)
     else:
-        try:
-            value = yaml.safe_load(raw) if raw else None
-        except yaml.YAMLError as exc:
-            reason = str(exc).splitlines()[0]
-            raise ConfigError(f"{label} {text!r}: the value is not YAML ({reason})") from None
-    return override_layer(key, value, f"{label} {text}", label)
+        value = load_yaml(raw, f"{label} {text!r}", ConfigError, "a YAML value") if raw else None
+    return override_layer(key, value, f"{label} {shown(text)}", label)
 
 
 def override_layer(key: str, value: Any, source: str, label: str) -> ConfigLayer:

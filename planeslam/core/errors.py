@@ -41,3 +41,7 @@ class EvaluationError(PlaneSlamError):
 
 class DownloadError(PlaneSlamError):
     """A download failed: HTTP error, unreachable server, interrupted transfer."""
+
+
+class OutputFolderError(PlaneSlamError):
+    """An output folder cannot be used: another run holds it, or it is not empty."""

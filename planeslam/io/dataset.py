@@ -14,6 +14,7 @@ read (`run_frames` skips it with a warning); a malformed `groundtruth.txt` is re
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from planeslam.core.camera import CameraConfig
+from planeslam.core.camera import MAX_IMAGE_SIDE, CameraConfig, check_image_size
 from planeslam.core.errors import AssociationError, DatasetFormatError, FrameReadError
 from planeslam.core.frame_checks import MAX_RANGE_M, check_depth_units
 from planeslam.io.config import DatasetConfig
@@ -339,12 +340,21 @@ def decode_image(path: Path, flags: int) -> np.ndarray:
     when it is missing, unreadable, a PNG or JPEG cut short (OpenCV would fill the missing
     part with grey), or not decodable."""
     try:
+        size = os.stat(path).st_size
+        if size > MAX_IMAGE_FILE_BYTES:
+            raise FrameReadError(
+                f"{path}: {size} bytes, more than an image of {MAX_IMAGE_SIDE}x{MAX_IMAGE_SIDE} "
+                "pixels needs; not read"
+            )
         data = np.fromfile(path, dtype=np.uint8)
     except FileNotFoundError:
         raise FrameReadError(f"{path}: image listed but not found") from None
     except OSError as exc:
         raise FrameReadError(f"{path}: cannot read the image ({exc.strerror})") from None
     head, tail = data[:8].tobytes(), data[-64:].tobytes()
+    header_size = image_header_size(data[:HEADER_BYTES].tobytes())
+    if header_size is not None:
+        check_image_size(*header_size, str(path), FrameReadError)
     if head.startswith(_PNG_SIGNATURE) and b"IEND" not in tail:
         raise FrameReadError(f"{path}: truncated PNG (no IEND chunk at its end, {data.size} bytes)")
     if head.startswith(_JPEG_SIGNATURE) and b"\xff\xd9" not in tail:
@@ -357,6 +367,32 @@ def decode_image(path: Path, flags: int) -> np.ndarray:
     if image is None:
         raise FrameReadError(f"{path}: not a decodable image (corrupt, or not an image file)")
     return image
+
+
+MAX_IMAGE_FILE_BYTES = MAX_IMAGE_SIDE * MAX_IMAGE_SIDE * 8
+"""Largest image file read [bytes]: 4 channels of 16 bits at the largest size."""
+HEADER_BYTES = 1 << 16
+_JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+"""JPEG start-of-frame markers (which hold the image size)."""
+
+
+def image_header_size(head: bytes) -> tuple[int, int] | None:
+    """(width, height) [pixels] from the start of a PNG (its IHDR) or JPEG (its first
+    start-of-frame segment) file, read before decoding; None for another format or a
+    header not in `head`."""
+    if head.startswith(_PNG_SIGNATURE) and head[12:16] == b"IHDR" and len(head) >= 24:
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if not head.startswith(_JPEG_SIGNATURE):
+        return None
+    k = 2
+    while k + 9 <= len(head) and head[k] == 0xFF:
+        marker, length = head[k + 1], int.from_bytes(head[k + 2 : k + 4], "big")
+        if marker in _JPEG_SOF:
+            return int.from_bytes(head[k + 7 : k + 9], "big"), int.from_bytes(
+                head[k + 5 : k + 7], "big"
+            )
+        k += 2 + length
+    return None
 
 
 def _check_jpeg_scan(path: Path, data: np.ndarray) -> None:

@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from planeslam.core.camera import CameraConfig
+from planeslam.core.camera import CameraConfig, check_image_size
 from planeslam.core.errors import (
     AssociationError,
     ConfigError,
@@ -39,6 +39,7 @@ from planeslam.core.frame_checks import MAX_RANGE_M, check_depth_units, clean_de
 from planeslam.core.geometry import pose_from_quat
 from planeslam.io.config import DatasetConfig
 from planeslam.io.dataset import (
+    HEADER_BYTES,
     Frame,
     FrameSequence,
     Undistortion,
@@ -46,6 +47,7 @@ from planeslam.io.dataset import (
     check_depth_size,
     check_rgb_matches_depth,
     depth_m_from_raw,
+    image_header_size,
 )
 from planeslam.io.trajectory import Trajectory, read_tum
 
@@ -107,6 +109,7 @@ def _image_array(msg: Any, where: str, formats: dict[str, tuple[str, int]]) -> n
     kind, channels = formats[encoding]
     dtype = np.dtype(kind).newbyteorder(">" if msg.is_bigendian else "<")
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    check_image_size(width, height, where, DatasetFormatError)
     row_bytes = width * channels * dtype.itemsize
     data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
     if step < row_bytes or data.size < step * height:
@@ -126,7 +129,11 @@ def _decode_compressed(msg: Any, where: str) -> np.ndarray:
             f"{where}: compressedDepth images are not supported; record depth as a raw "
             f"sensor_msgs/Image (16UC1 or 32FC1)"
         )
-    image = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    data = np.asarray(msg.data, dtype=np.uint8).reshape(-1)
+    header_size = image_header_size(data[:HEADER_BYTES].tobytes())
+    if header_size is not None:
+        check_image_size(*header_size, where, DatasetFormatError)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise FrameReadError(f"{where}: CompressedImage ({msg.format!r}) does not decode")
     return image
@@ -285,6 +292,9 @@ class RosBagDataset(FrameSequence):
             reader.open()
         except (AnyReaderError, FileNotFoundError, OSError) as exc:
             raise DatasetFormatError(f"{self.root}: not a readable ROS bag ({exc})") from None
+        except Exception as exc:  # noqa: BLE001 - random bytes fail anywhere in rosbags
+            reason = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+            raise DatasetFormatError(f"{self.root}: not a readable ROS bag ({reason})") from None
         self._reader = reader
         self._lock = threading.Lock()
         self._close = weakref.finalize(self, _close_reader, reader)

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from planeslam.core.errors import DatasetFormatError, DownloadError
+from planeslam.core.safe_files import open_output, regular_file_size
 
 log = logging.getLogger(__name__)
 
@@ -181,7 +182,7 @@ def download_file(
     transfer breaks off, so that calling again continues it. DownloadError naming the URL
     for an HTTP error, an unreachable server or a transfer that ends early."""
     part = dest.with_name(dest.name + ".part")
-    offset = part.stat().st_size if part.is_file() else 0
+    offset = regular_file_size(part) or 0  # a link planted there is not continued
     request = urllib.request.Request(url, headers={"User-Agent": "planeslam"})
     if offset:
         request.add_header("Range", f"bytes={offset}-")
@@ -213,7 +214,7 @@ def download_file(
         total = _content_total(response, offset)
         fetched = 0
         broken: Exception | None = None
-        with open(part, "ab" if offset else "wb") as fh:
+        with open_output(part, append=bool(offset)) as fh:  # never through a link
             if on_progress is not None:
                 on_progress(offset, total)
             while broken is None:
@@ -227,7 +228,7 @@ def download_file(
                 fetched += len(chunk)
                 if on_progress is not None:
                     on_progress(offset + fetched, total)
-    size = part.stat().st_size
+    size = regular_file_size(part) or 0
     if broken is not None or (total is not None and size != total):
         expected = f"of {total} " if total is not None else ""
         raise DownloadError(

@@ -6,7 +6,11 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+from planeslam.core.bounded_parse import read_text
 from planeslam.core.errors import DatasetFormatError
+
+MAX_TEXT_BYTES = 1 << 30
+"""Largest list or trajectory file read [bytes] (a long sequence's are a few MB)."""
 
 
 def tum_rows(
@@ -16,17 +20,19 @@ def tum_rows(
 
     For the errors (DatasetFormatError naming the file when it is missing or holds no
     rows): `kind` names the file ('trajectory'), `expected` a row ('timestamp path'),
-    `entries` what rows hold ('poses'). Readers check the fields and raise `row_error`."""
+    `entries` what rows hold ('poses'); also when it is not UTF-8 text. Readers check the
+    fields and raise `row_error`."""
     if not path.is_file():
         raise DatasetFormatError(f"{path}: {kind} file not found (expected rows '{expected}')")
     count = 0
-    with open(path, encoding="utf-8-sig") as fh:
-        for lineno, line in enumerate(fh, start=1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            count += 1
-            yield lineno, text.replace(",", " ").split()
+    for lineno, line in enumerate(
+        read_text(path, DatasetFormatError, MAX_TEXT_BYTES).split("\n"), 1
+    ):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        count += 1
+        yield lineno, text.replace(",", " ").split()
     if not count:
         raise DatasetFormatError(f"{path}: no {entries} (expected rows '{expected}')")
 

@@ -18,6 +18,7 @@ import numpy as np
 from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import ConfigError, MapError
 from planeslam.core.geometry import invert_pose
+from planeslam.core.safe_files import atomic_output
 
 BLOCK_RESOLUTION = 16
 """Voxels along each edge of a hashed block."""
@@ -87,9 +88,9 @@ class DenseMesh:
         """Binary PLY with vertex colours and normals; returns the path."""
         o3d = _open3d()
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        if not o3d.io.write_triangle_mesh(str(path), self.to_open3d(), write_ascii=False):
-            raise MapError(f"{path}: Open3D could not write the mesh")
+        with atomic_output(path, keep_suffix=True) as tmp:  # never through a link at `path`
+            if not o3d.io.write_triangle_mesh(str(tmp), self.to_open3d(), write_ascii=False):
+                raise MapError(f"{path}: Open3D could not write the mesh")
         return path
 
 

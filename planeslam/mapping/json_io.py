@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.config import from_mapping
 from planeslam.core.errors import MapError
 from planeslam.core.safe_files import atomic_output
@@ -125,7 +126,7 @@ def contents_from_dict(data: Mapping[str, Any], source: str = "<dict>") -> MapCo
         c.cloud = _cloud(data.get("sparse_cloud") or {}, c.config)
         c.next_plane_id = int(data.get("next_plane_id", max(c.planes, default=-1) + 1))
         c.next_corner_id = int(data.get("next_corner_id", max(c.corners, default=-1) + 1))
-    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError, IndexError) as exc:
         raise MapError(f"{source}: malformed map content ({type(exc).__name__}: {exc})") from None
     except MapError as exc:
         raise MapError(f"{source}: {exc}") from None
@@ -142,16 +143,10 @@ def save_json(data: Mapping[str, Any], path: str | Path) -> Path:
 
 
 def load_json(path: str | Path) -> dict[str, Any]:
-    """The dict in a map file. MapError for a missing / unreadable file or content that is
-    not a JSON object."""
+    """The dict in a map file. MapError for a missing / unreadable file, content that is
+    not a JSON object, or a number that is not finite (`bounded_parse` limits)."""
     path = Path(path)
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
-    except FileNotFoundError:
-        raise MapError(f"{path}: map file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MapError(f"{path}: not a readable JSON map ({exc})") from None
+    data = read_json_file(path, MapError, what="map file")
     if not isinstance(data, dict):
         raise MapError(f"{path}: map schema None, expected {MAP_SCHEMA!r}")
     return data

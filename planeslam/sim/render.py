@@ -89,6 +89,7 @@ from typing import Any, Literal, TypeAlias
 import cv2
 import numpy as np
 
+from planeslam.core.bounded_parse import read_json_file
 from planeslam.core.camera import CameraConfig
 from planeslam.core.config import save_yaml, to_mapping
 from planeslam.core.errors import ConfigError, DatasetFormatError
@@ -764,13 +765,7 @@ def load_truth(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if path.is_dir():
         path = path / "truth.json"
-    try:
-        with open(path, encoding="utf-8") as fh:
-            data = json.load(fh)
-    except FileNotFoundError:
-        raise DatasetFormatError(f"{path}: truth file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DatasetFormatError(f"{path}: not a readable JSON file ({exc})") from None
+    data = read_json_file(path, DatasetFormatError, what="truth file")
     schema = data.get("schema") if isinstance(data, dict) else None
     if schema != TRUTH_SCHEMA:
         raise DatasetFormatError(f"{path}: expected schema {TRUTH_SCHEMA!r}, got {schema!r}")
