@@ -60,9 +60,22 @@ class Segment:
         self._last = np.eye(4)
         self._velocity = np.eye(4)
         self._last_keyframe = np.eye(4)
+        self.T_world_seg_candidate: np.ndarray | None = None
+        """(4, 4) where a relocalised frame put the segment, awaiting a second frame."""
         keypoints = result.keypoints if result is not None else None
         self.tracker.add_keyframe(index, np.eye(4), rgb, observation.cloud, keypoints)
         self.tracker.start(observation, np.eye(4), rgb, depth_m)
+
+    def confirms(self, T_world_cam: np.ndarray, T_seg_cam: np.ndarray) -> bool:
+        """Whether a relocalised frame's pose T_world_cam (4, 4), tracked at T_seg_cam (4, 4)
+        in the segment, puts the segment where an earlier relocalised frame did (within
+        `fast_max_jump_m` / `fast_max_jump_deg`); else it becomes the candidate."""
+        T_world_seg = T_world_cam @ invert_pose(T_seg_cam)
+        previous, self.T_world_seg_candidate = self.T_world_seg_candidate, T_world_seg
+        if previous is None:
+            return False
+        meters, degrees = pose_difference(previous, T_world_seg)
+        return meters <= self.config.fast_max_jump_m and degrees <= self.config.fast_max_jump_deg
 
     def track(
         self,
@@ -76,7 +89,7 @@ class Segment:
         result = self.tracker.track(
             observation, self._view, self._last @ self._velocity, rgb, depth_m
         )
-        if not result.path.maps:
+        if result.lost:  # a dense fallback's pose counts: the segment only chains motions
             return None
         T = result.T_world_cam
         self._velocity = invert_pose(self._last) @ T

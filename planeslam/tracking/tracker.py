@@ -1021,34 +1021,45 @@ class Tracker:
                 reasons.append(f"{len(matches)} point matches agree on no pose")
         starts.append(T_pred)
         best = self._best_joint(frame, view, starts, keypoints, matches, T_pred)
-        path: TrackingPath | None = None
         if best is not None:
-            path = best.path
-        elif cfg.relocalise and not view.empty:
-            best = self.relocalise(frame, view, T_pred, keypoints)
-            path = TrackingPath.RELOCALISED
-            if best is None:
-                reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
-        if best is not None and path is not None:
             return self._result(
                 frame,
                 view,
                 best.T,
                 best.association,
-                path,
+                best.path,
                 "; ".join(reasons),
                 best.constraints,
                 keypoints,
             )
-        jumped = len(matches) >= 2 * cfg.points.min_inliers  # matched, yet no pose: a jump
-        if jumped:
-            reasons.append("the frame's keypoints contradict the recent keyframes (a jump?)")
-        elif self.prediction_valid:
+        # Right after a tracked frame, the dense fallbacks against it come before a
+        # whole-map search: keypoints that agree on no pose (a repetitive texture) are no
+        # evidence of a jump, and a symmetric scene offers relocalisations a half-turn off.
+        if self.prediction_valid:
             dense = self._dense(
                 frame, view, T_pred, trusted, cloud, rgbd, reasons, keypoints, slides
             )
             if dense is not None:
                 return dense
+        if cfg.relocalise and not view.empty:
+            found = self.relocalise(frame, view, T_pred, keypoints)
+            if found is None:
+                reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
+            elif self.prediction_valid and not self._near(found.T, T_pred, True, T_last):
+                # No plausible motion since the last frame explains it: not taken on one
+                # frame's evidence (a segment starts; later frames confirm or not).
+                reasons.append("a relocalisation far from the last pose is not taken alone")
+            else:
+                return self._result(
+                    frame,
+                    view,
+                    found.T,
+                    found.association,
+                    TrackingPath.RELOCALISED,
+                    "; ".join(reasons),
+                    found.constraints,
+                    keypoints,
+                )
         reasons.append("no fallback registered the frame")
         if view.empty and self.empty_map_starts:
             return TrackResult(
