@@ -47,6 +47,7 @@ from planeslam.io.sequence import open_dataset
 from planeslam.io.trajectory import Trajectory
 from planeslam.sim.procedural import (
     DEPTH_MODELS,
+    GENERATOR_VERSION,
     TEXTURE_KINDS,
     TRAJECTORY_KINDS,
     Recipe,
@@ -248,15 +249,16 @@ def _truth_at(truth: Trajectory, timestamp: float) -> np.ndarray:
 
 def ensure_rendered(recipe: Recipe, data_dir: Path) -> Path:
     """The recipe's dataset folder under `data_dir`, rendered unless it already holds
-    this recipe (truth.json's 'rendering' names it)."""
+    this recipe from this generator version (truth.json's 'rendering' names both)."""
     root = data_dir / recipe.name
     truth_path = root / "truth.json"
     if truth_path.is_file():
         try:
-            stored = json.loads(truth_path.read_text(encoding="utf-8"))["rendering"]["recipe"]
+            stored = json.loads(truth_path.read_text(encoding="utf-8"))["rendering"]
+            made = (stored["recipe"], stored["generator_version"])
         except (OSError, ValueError, KeyError, TypeError):
-            stored = None
-        if stored == json.loads(json.dumps(asdict(recipe))):
+            made = None
+        if made == (json.loads(json.dumps(asdict(recipe))), GENERATOR_VERSION):
             return root
     write_procedural(recipe, root)
     return root

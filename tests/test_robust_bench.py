@@ -105,6 +105,11 @@ def test_each_path_is_what_its_kind_says(kind: str) -> None:
     assert room.object_class == "room"
     if kind in ("handheld", "rotation", "wall", "loop"):
         assert np.allclose(dt, 1 / 30)
+        turns = np.linalg.inv(path.T_world_cam[:-1]) @ path.T_world_cam[1:]
+        angles = np.degrees(
+            np.arccos(np.clip((np.trace(turns[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1))
+        )
+        assert angles.max() < 4.0  # smooth: no turn of the view between two frames
     if kind == "robot_steps":
         assert np.all((dt >= 0.5) & (dt <= 1.0))
         assert np.all((steps > 0.05) & (steps <= 0.2 + 1e-9))

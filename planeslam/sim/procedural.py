@@ -71,6 +71,9 @@ _PATH_CLEARANCE_M = 0.45
 """Furniture footprints stay this far from every camera position [m]."""
 _WALL_MARGIN_M = 0.6
 """Camera positions stay this far from the walls [m] (except the 'wall' path)."""
+GENERATOR_VERSION = 2
+"""Changes whenever a recipe's sequence changes; stored in truth.json, so a benchmark
+renders a folder again when it was made by another version."""
 
 
 @dataclass(frozen=True)
@@ -175,24 +178,24 @@ def _shake(T: np.ndarray, gen: np.random.Generator, metres: float, radians: floa
 def _sweep(
     half: np.ndarray, gen: np.random.Generator, n: int, length_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """A smooth hand-held sweep inside the room: eye and look-at points (n, 3)."""
+    """A smooth hand-held sweep inside the room: eye and look-at points (n, 3). The eye
+    moves along a segment with ease-in and ease-out; the view turns smoothly by 20-60 deg
+    about the vertical while looking 15-35 deg down."""
     span = np.maximum(half[:2] - _WALL_MARGIN_M, 0.2)
     start = gen.uniform(-span, span)
     heading = gen.uniform(0.0, 2 * np.pi)
     direction = np.array([np.cos(heading), np.sin(heading)])
     end = np.clip(start + length_m * direction, -span, span)
     s = np.linspace(0.0, 1.0, n)
-    xy = start + (end - start) * (3 * s**2 - 2 * s**3)[:, None]
+    ease = 3 * s**2 - 2 * s**3
+    xy = start + (end - start) * ease[:, None]
     height = gen.uniform(1.0, 1.6)
     eye = np.column_stack([xy, height + 0.05 * np.sin(2 * np.pi * s)])
-    # Look toward a point that drifts along the far side of the room.
-    away = gen.uniform(0.0, 2 * np.pi) + np.array([0.0, gen.uniform(-1.2, 1.2)])
-    far = 0.7 * half[:2] * np.column_stack([np.cos(away), np.sin(away)])
-    look_xy = far[0] + (far[1] - far[0]) * s[:, None]
-    target = np.column_stack([look_xy, np.full(n, gen.uniform(0.3, 0.9))])
-    too_close = np.linalg.norm(target[:, :2] - eye[:, :2], axis=1) < 0.8
-    target[too_close, :2] = -eye[too_close, :2] * 0.5  # look back across the room
-    return eye, target
+    yaw0 = np.arctan2(-start[1], -start[0]) + gen.uniform(-0.8, 0.8)  # roughly inward
+    yaw = yaw0 + gen.choice((-1.0, 1.0)) * np.deg2rad(gen.uniform(20.0, 60.0)) * ease
+    pitch = np.deg2rad(gen.uniform(15.0, 35.0))
+    look = np.column_stack([np.cos(yaw), np.sin(yaw), np.full(n, -np.tan(pitch))])
+    return eye, eye + look
 
 
 def _steps(half: np.ndarray, gen: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -484,5 +487,5 @@ def write_procedural(
         camera=camera,
         noise_model=recipe.depth_model,
         rng=np.random.default_rng([recipe.seed, 2]),
-        rendering={"recipe": asdict(recipe)},
+        rendering={"recipe": asdict(recipe), "generator_version": GENERATOR_VERSION},
     )
