@@ -3,10 +3,14 @@
 When a frame cannot be placed in the map, a `Segment` starts at it: later frames are
 tracked in the segment's own frame (the camera frame of its first frame) against its
 most recent keyframe (planes, corners, edges and keypoints, the same estimator as in the
-map), while every frame is also tried against the whole map. The first frame that both
-relocalises in the map and tracks in the segment joins them: T_world_seg follows from its
-two poses, and every frame of the segment gets its world pose through it (the
-orchestrator re-anchors them on the joining frame, so later optimisation moves them too).
+map, and its dense fallbacks against the previous frame), while every frame is also
+tried against the whole map. A frame that tracks in the segment and is placed in the map
+near the map's prediction or by keypoints joins them; a frame placed by a whole-map
+relocalisation joins them only when a second one puts the segment at the same place
+(`confirms`: a symmetric scene offers places a half-turn off). T_world_seg follows from
+the joining frame's two poses, and every frame of the segment gets its world pose
+through it (the orchestrator re-anchors them on the joining frame, so later
+optimisation moves them too).
 A segment frame that the segment cannot track either starts a new segment; frames of a
 segment that never joins stay lost.
 

@@ -22,12 +22,19 @@ Per frame:
    and the prediction; each is refined, and the best-supported trusted one wins. The path
    says what fixed the pose: `planes` (planes alone fixed all six directions),
    `planes+points` (the planes fixed some, other primitives the rest) or `points`.
-3. `relocalised`: nothing near the prediction fits: whole-map relocalisation
+3. `odometry`, then `icp` (right after a tracked frame only): nothing near the
+   prediction fits: RGB-D odometry, then ICP against the previous frame, from the
+   prediction, each accepted by its own overlap with that frame (not mapped; a plane
+   pose that fixed some directions keeps them: `planes+odometry`). Keypoints that agree
+   on no pose are no evidence against them: a repetitive texture gives many such.
+4. `relocalised`: nothing above gives a pose: whole-map relocalisation
    (`relocalise.relocalisation_candidates`: corner, plane-triple and edge hypotheses and
    the keyframes that share most descriptors, verified against all of the frame's
-   primitives), each candidate refined as in step 2.
-4. `odometry`, then `icp`: nothing above gives a pose: RGB-D odometry, then ICP against
-   the previous frame, from the prediction (not mapped).
+   primitives), each candidate refined as in step 2. Right after a tracked frame, a
+   relocalisation beyond the fast path's jump limit of the last pose is not taken on
+   this frame's evidence (a symmetric scene offers one a half-turn off): the frame is
+   lost, a segment starts, and two relocalisations that agree place it
+   (`planeslam.tracking.segments`).
 5. `lost`: nothing worked; the pose is the prediction and the frame is left out of the
    trajectory.
 
@@ -219,6 +226,13 @@ class _LazyKeypoints:
 
 
 _NO_POINTS = _LazyKeypoints(None)
+
+COLOUR_MATCH_SHARE = 0.5
+"""A dense pose's colours match the previous frame's when their median grey difference is
+within this share of the frame's texture contrast (median absolute deviation)."""
+COLOUR_MIN_CONTRAST = 8.0
+"""Grey levels of contrast below which colours can neither confirm nor contradict a pose
+(sensor noise and shading differences stay below it)."""
 
 
 class Tracker:
@@ -857,6 +871,45 @@ class Tracker:
         close = np.abs(z_prev[seen] - p[inside][seen, 2]) <= cfg.icp_max_distance_m
         return bool(np.mean(close) >= cfg.icp_min_fitness)
 
+    def _colours_agree(
+        self, cloud: np.ndarray | None, rgbd, T_world_cam: np.ndarray
+    ) -> bool | None:
+        """Whether this frame's colours, moved by T_world_cam (4, 4) into the previous
+        frame, match the colours there (where the depths agree): True when the median grey
+        difference is within COLOUR_MATCH_SHARE of the frame's texture contrast, and that
+        contrast is at least COLOUR_MIN_CONTRAST (a texture that can confirm a pose);
+        False when the difference exceeds both (the colours contradict the pose); None
+        when it cannot be told (no colour, too few shared pixels, a plain scene that
+        matches)."""
+        if cloud is None or rgbd is None or self._previous_rgbd is None or self.camera is None:
+            return None
+        assert self._T_world_previous is not None, "set with the previous frame"
+        cam, s = self.camera, self.config.icp_stride
+        xyz = cloud[::s, ::s].reshape(-1, 3)
+        grey = rgbd[0][::s, ::s].reshape(-1, 3).astype(np.float32).mean(axis=1)
+        keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
+        p = transform_points(invert_pose(self._T_world_previous) @ T_world_cam, xyz[keep])
+        grey = grey[keep]
+        front = p[:, 2] > 0.1
+        p, grey = p[front], grey[front]
+        u = np.rint(cam.fx * p[:, 0] / p[:, 2] + cam.cx).astype(np.int64)
+        v = np.rint(cam.fy * p[:, 1] / p[:, 2] + cam.cy).astype(np.int64)
+        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        rgb_prev, depth_prev = self._previous_rgbd
+        z_prev = depth_prev[v[inside], u[inside]]
+        shared = (z_prev > 0) & (np.abs(z_prev - p[inside, 2]) <= self.config.icp_max_distance_m)
+        if np.count_nonzero(shared) < 100:
+            return None
+        g_cur = grey[inside][shared]
+        g_prev = rgb_prev[v[inside][shared], u[inside][shared]].astype(np.float32).mean(axis=1)
+        difference = float(np.median(np.abs(g_prev - g_cur)))
+        contrast = float(np.median(np.abs(g_cur - np.median(g_cur))))
+        if difference <= COLOUR_MATCH_SHARE * contrast and contrast >= COLOUR_MIN_CONTRAST:
+            return True
+        if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
+            return False
+        return None
+
     def _rgbd(self, rgbd, T_world_cam_init: np.ndarray) -> np.ndarray | None:
         """T_world_cam by RGB-D odometry against the previous frame, or None. `rgbd` and the
         previous frame are (rgb, depth_m) pairs, turned into Open3D images only here."""
@@ -1096,10 +1149,14 @@ class Tracker:
             if not self._agrees(cloud, T):
                 reasons.append(f"{path.value} result does not overlap the previous frame")
                 continue
-            if slides() and not self._keypoints_agree(T, keypoints):
+            colours = self._colours_agree(cloud, rgbd, T)
+            if colours is False:
+                reasons.append(f"{path.value} result: the colours contradict the previous frame")
+                continue
+            if slides() and not (colours or self._keypoints_agree(T, keypoints)):
                 reasons.append(
                     f"{path.value} result unconfirmed: the frame's depth is parallel planes "
-                    "and its keypoints do not agree"
+                    "and neither its texture nor its keypoints confirm the slide"
                 )
                 continue
             dof = (0, 0)
