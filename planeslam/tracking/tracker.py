@@ -47,6 +47,7 @@ frame; every pose is T_world_cam (4, 4).
 
 from __future__ import annotations
 
+import enum
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -226,6 +227,20 @@ class _LazyKeypoints:
 
 
 _NO_POINTS = _LazyKeypoints(None)
+
+
+class ColourCheck(enum.Enum):
+    """What the colours say of a dense pose against the previous frame."""
+
+    CONFIRMS = "confirms"
+    """A textured view whose colours land on the same colours."""
+    CONTRADICTS = "contradicts"
+    """The colours differ by more than texture and noise explain: the pose is wrong."""
+    PLAIN = "plain"
+    """Too little texture to tell, and nothing contradicts the pose."""
+    UNKNOWN = "unknown"
+    """No colour, or too few pixels seen by both frames."""
+
 
 COLOUR_MATCH_SHARE = 0.5
 """A dense pose's colours match the previous frame's when their median grey difference is
@@ -871,18 +886,13 @@ class Tracker:
         close = np.abs(z_prev[seen] - p[inside][seen, 2]) <= cfg.icp_max_distance_m
         return bool(np.mean(close) >= cfg.icp_min_fitness)
 
-    def _colours_agree(
-        self, cloud: np.ndarray | None, rgbd, T_world_cam: np.ndarray
-    ) -> bool | None:
-        """Whether this frame's colours, moved by T_world_cam (4, 4) into the previous
-        frame, match the colours there (where the depths agree): True when the median grey
-        difference is within COLOUR_MATCH_SHARE of the frame's texture contrast, and that
-        contrast is at least COLOUR_MIN_CONTRAST (a texture that can confirm a pose);
-        False when the difference exceeds both (the colours contradict the pose); None
-        when it cannot be told (no colour, too few shared pixels, a plain scene that
-        matches)."""
+    def _colour_check(self, cloud: np.ndarray | None, rgbd, T_world_cam: np.ndarray) -> ColourCheck:
+        """Whether this frame's colours, moved by T_world_cam (4, 4) into the previous frame,
+        match the colours there where the depths agree (`ColourCheck`): the median grey
+        difference against COLOUR_MATCH_SHARE of the frame's texture contrast (the median
+        absolute deviation of its grey levels) and COLOUR_MIN_CONTRAST."""
         if cloud is None or rgbd is None or self._previous_rgbd is None or self.camera is None:
-            return None
+            return ColourCheck.UNKNOWN
         assert self._T_world_previous is not None, "set with the previous frame"
         cam, s = self.camera, self.config.icp_stride
         xyz = cloud[::s, ::s].reshape(-1, 3)
@@ -899,16 +909,18 @@ class Tracker:
         z_prev = depth_prev[v[inside], u[inside]]
         shared = (z_prev > 0) & (np.abs(z_prev - p[inside, 2]) <= self.config.icp_max_distance_m)
         if np.count_nonzero(shared) < 100:
-            return None
+            return ColourCheck.UNKNOWN
         g_cur = grey[inside][shared]
         g_prev = rgb_prev[v[inside][shared], u[inside][shared]].astype(np.float32).mean(axis=1)
         difference = float(np.median(np.abs(g_prev - g_cur)))
         contrast = float(np.median(np.abs(g_cur - np.median(g_cur))))
-        if difference <= COLOUR_MATCH_SHARE * contrast and contrast >= COLOUR_MIN_CONTRAST:
-            return True
         if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
-            return False
-        return None
+            return ColourCheck.CONTRADICTS
+        if contrast < COLOUR_MIN_CONTRAST:
+            return ColourCheck.PLAIN
+        if difference <= COLOUR_MATCH_SHARE * contrast:
+            return ColourCheck.CONFIRMS
+        return ColourCheck.UNKNOWN
 
     def _rgbd(self, rgbd, T_world_cam_init: np.ndarray) -> np.ndarray | None:
         """T_world_cam by RGB-D odometry against the previous frame, or None. `rgbd` and the
@@ -1149,14 +1161,18 @@ class Tracker:
             if not self._agrees(cloud, T):
                 reasons.append(f"{path.value} result does not overlap the previous frame")
                 continue
-            colours = self._colours_agree(cloud, rgbd, T)
-            if colours is False:
+            colours = self._colour_check(cloud, rgbd, T)
+            if colours is ColourCheck.CONTRADICTS:
                 reasons.append(f"{path.value} result: the colours contradict the previous frame")
                 continue
-            if slides() and not (colours or self._keypoints_agree(T, keypoints)):
+            if (
+                colours is ColourCheck.UNKNOWN
+                and slides()
+                and not self._keypoints_agree(T, keypoints)
+            ):
                 reasons.append(
                     f"{path.value} result unconfirmed: the frame's depth is parallel planes "
-                    "and neither its texture nor its keypoints confirm the slide"
+                    "and its keypoints do not agree"
                 )
                 continue
             dof = (0, 0)
