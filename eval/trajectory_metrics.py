@@ -190,8 +190,10 @@ def evaluate_trajectory(
     estimate: Trajectory | str | Path,
     max_time_difference_s: float = 0.02,
     rpe_delta_s: float = 1.0,
+    align: bool = True,
 ) -> TrajectoryEvaluation:
-    """ATE (evo APE, translation part, SE(3) Umeyama alignment without scale) and RPE per
+    """ATE (evo APE, translation part, SE(3) Umeyama alignment without scale; with
+    `align` False none, for runs that start at the true pose) and RPE per
     `rpe_delta_s` (evo RPE, translation [m] and rotation angle [deg], all pairs `rpe_delta_frames`
     apart) of `estimate` against `groundtruth` (T_world_cam trajectories or TUM files).
 
@@ -205,8 +207,10 @@ def evaluate_trajectory(
     gt_sync, est_sync = associate(groundtruth, estimate, max_time_difference_s)
 
     est_aligned = copy.deepcopy(est_sync)
+    rotation, translation = np.eye(3), np.zeros(3)
     try:
-        rotation, translation, _ = est_aligned.align(gt_sync, correct_scale=False)
+        if align:
+            rotation, translation, _ = est_aligned.align(gt_sync, correct_scale=False)
     except GeometryException as exc:
         raise EvaluationError(
             f"cannot align the estimate to the ground truth ({exc}); the {gt_sync.num_poses} "

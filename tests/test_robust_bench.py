@@ -226,6 +226,19 @@ def test_method_figures_on_a_run_with_a_jump_a_wrong_relocalisation_and_lost_fra
     assert clean.passed and clean.ate_m == pytest.approx(0.0, abs=1e-9)
 
 
+def test_a_camera_turning_in_place_gets_an_unaligned_ate() -> None:
+    n = 20
+    truth_poses = np.tile(np.eye(4), (n, 1, 1))
+    yaw = np.radians(np.linspace(0.0, 60.0, n))
+    truth_poses[:, 0, 0], truth_poses[:, 0, 1] = np.cos(yaw), -np.sin(yaw)
+    truth_poses[:, 1, 0], truth_poses[:, 1, 1] = np.sin(yaw), np.cos(yaw)
+    estimate = truth_poses.copy()
+    estimate[:, 0, 3] = 0.01  # 1 cm off everywhere
+    stamps = np.arange(n) / 30.0
+    figures = method_figures(Trajectory(stamps, truth_poses), Trajectory(stamps, estimate), n, 30.0)
+    assert figures.error is None and figures.ate_m == pytest.approx(0.01)
+
+
 def _row(name: str, split: str, ours: MethodFigures, theirs: MethodFigures) -> RobustRow:
     return RobustRow(name, split, "orbit", "none", "tof", True, 30, ours, theirs)  # type: ignore[arg-type]
 
