@@ -242,6 +242,10 @@ class ColourCheck(enum.Enum):
     """No colour, or too few pixels seen by both frames."""
 
 
+MAX_SPEED_M_S = 0.6
+"""Fastest plausible camera motion between two frames [m/s] (a walking robot, a hand)."""
+MAX_TURN_DEG_S = 60.0
+"""Fastest plausible camera turn between two frames [deg/s]."""
 COLOUR_MATCH_SHARE = 0.5
 """A dense pose's colours match the previous frame's when their median grey difference is
 within this share of the frame's texture contrast (median absolute deviation)."""
@@ -1097,23 +1101,19 @@ class Tracker:
                 best.constraints,
                 keypoints,
             )
-        # Right after a tracked frame, the dense fallbacks against it come before a
-        # whole-map search: keypoints that agree on no pose (a repetitive texture) are no
-        # evidence of a jump, and a symmetric scene offers relocalisations a half-turn off.
-        if self.prediction_valid:
-            dense = self._dense(
-                frame, view, T_pred, trusted, cloud, rgbd, reasons, keypoints, slides
-            )
-            if dense is not None:
-                return dense
+        # A whole-map search, taken right after a tracked frame only where a plausible
+        # motion since then explains it and the colours do not contradict it (a symmetric
+        # scene offers places a half-turn off); after a loss, a segment confirms it.
         if cfg.relocalise and not view.empty:
             found = self.relocalise(frame, view, T_pred, keypoints)
             if found is None:
                 reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
-            elif self.prediction_valid and not self._near(found.T, T_pred, True, T_last):
-                # No plausible motion since the last frame explains it: not taken on one
-                # frame's evidence (a segment starts; later frames confirm or not).
-                reasons.append("a relocalisation far from the last pose is not taken alone")
+            elif self.prediction_valid and not self._plausible(
+                found.T, T_pred if T_last is None else T_last, frame_gap_s
+            ):
+                reasons.append("a relocalisation no plausible motion explains is not taken")
+            elif self._colour_check(cloud, rgbd, found.T) is ColourCheck.CONTRADICTS:
+                reasons.append("a relocalisation whose colours contradict the last frame")
             else:
                 return self._result(
                     frame,
@@ -1125,6 +1125,14 @@ class Tracker:
                     found.constraints,
                     keypoints,
                 )
+        # Keypoints that agree on no pose (a repetitive texture gives many) are no evidence
+        # of a jump: the dense fallbacks against the last frame still run.
+        if self.prediction_valid:
+            dense = self._dense(
+                frame, view, T_pred, trusted, cloud, rgbd, reasons, keypoints, slides
+            )
+            if dense is not None:
+                return dense
         reasons.append("no fallback registered the frame")
         if view.empty and self.empty_map_starts:
             return TrackResult(
@@ -1223,6 +1231,17 @@ class Tracker:
             return False
         jumps = [(meters, degrees)] + ([] if T_last is None else [pose_difference(T_last, T)])
         return any(m <= cfg.fast_max_jump_m and d <= cfg.fast_max_jump_deg for m, d in jumps)
+
+    def _plausible(self, T: np.ndarray, T_last: np.ndarray, gap_s: float) -> bool:
+        """Whether a motion from T_last (4, 4) to T (4, 4) in `gap_s` seconds is one a
+        hand-held or robot-borne camera makes: within the fast path's jump limit, or within
+        MAX_SPEED_M_S and MAX_TURN_DEG_S over the gap."""
+        meters, degrees = pose_difference(T_last, T)
+        gap = gap_s if np.isfinite(gap_s) else 0.0
+        cfg = self.config
+        return meters <= max(cfg.fast_max_jump_m, MAX_SPEED_M_S * gap) and degrees <= max(
+            cfg.fast_max_jump_deg, MAX_TURN_DEG_S * gap
+        )
 
     def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
         """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""
