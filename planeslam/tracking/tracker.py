@@ -746,12 +746,17 @@ class Tracker:
         keypoints: Keypoints | None,
         matches: PointMatches,
         T_pred: np.ndarray,
+        T_last: np.ndarray | None = None,
+        frame_gap_s: float = np.inf,
     ) -> JointSolve | None:
-        """The best-supported `joint` solution over the start poses that is corroborated:
-        by at least `points.min_inliers` point matches, or (while tracking, not after a
-        loss) by being within the fast path's correction of the prediction or by at least
-        `relocalise_min_planes` inlier planes. Planes alone far from a prediction prove
-        little: three of them always fit."""
+        """The best-supported `joint` solution over the start poses that is corroborated.
+        While tracking: within the fast path's correction of the prediction, or at a pose a
+        plausible motion from the last one T_last (4, 4), `frame_gap_s` seconds ago,
+        reaches (`_plausible`) with at least `points.min_inliers` point matches or
+        `relocalise_min_planes` inlier planes (a jump is not taken on one frame's
+        evidence: aliased keypoints agree on wrong poses too). After a loss: at least
+        `points.min_inliers` point matches (planes alone far from a prediction prove
+        little: three of them always fit)."""
         cfg = self.config
         best: JointSolve | None = None
         solved: list[np.ndarray] = []
@@ -764,13 +769,16 @@ class Tracker:
                 solved.append(candidate.T)
             if candidate is None or (best is not None and candidate.score <= best.score):
                 continue
-            corroborated = candidate.point_inliers >= cfg.points.min_inliers or (
-                self.prediction_valid
-                and (
-                    self._near(candidate.T, T_pred)
-                    or candidate.constraints.terms["planes"] >= cfg.relocalise_min_planes
+            if self.prediction_valid:  # tracking: no jump on one frame's evidence
+                corroborated = self._near(candidate.T, T_pred) or (
+                    self._plausible(candidate.T, T_last, frame_gap_s)
+                    and (
+                        candidate.point_inliers >= cfg.points.min_inliers
+                        or candidate.constraints.terms["planes"] >= cfg.relocalise_min_planes
+                    )
                 )
-            )
+            else:
+                corroborated = candidate.point_inliers >= cfg.points.min_inliers
             if corroborated:
                 best = candidate
         return best
@@ -1089,7 +1097,16 @@ class Tracker:
             else:
                 reasons.append(f"{len(matches)} point matches agree on no pose")
         starts.append(T_pred)
-        best = self._best_joint(frame, view, starts, keypoints, matches, T_pred)
+        best = self._best_joint(
+            frame,
+            view,
+            starts,
+            keypoints,
+            matches,
+            T_pred,
+            T_pred if T_last is None else T_last,
+            frame_gap_s,
+        )
         if best is not None:
             return self._result(
                 frame,
@@ -1232,10 +1249,12 @@ class Tracker:
         jumps = [(meters, degrees)] + ([] if T_last is None else [pose_difference(T_last, T)])
         return any(m <= cfg.fast_max_jump_m and d <= cfg.fast_max_jump_deg for m, d in jumps)
 
-    def _plausible(self, T: np.ndarray, T_last: np.ndarray, gap_s: float) -> bool:
+    def _plausible(self, T: np.ndarray, T_last: np.ndarray | None, gap_s: float) -> bool:
         """Whether a motion from T_last (4, 4) to T (4, 4) in `gap_s` seconds is one a
         hand-held or robot-borne camera makes: within the fast path's jump limit, or within
         MAX_SPEED_M_S and MAX_TURN_DEG_S over the gap."""
+        if T_last is None:
+            return True
         meters, degrees = pose_difference(T_last, T)
         gap = gap_s if np.isfinite(gap_s) else 0.0
         cfg = self.config
