@@ -493,9 +493,21 @@ class SLAM:
         tracking = self.config.tracking
         segment = self._segment
         T_seg = segment.track(index, observation, rgb, depth_m) if segment is not None else None
+        if not track.lost and segment is not None and T_seg is not None:
+            if track.path is TrackingPath.RELOCALISED and not segment.confirms(
+                track.T_world_cam, T_seg
+            ):
+                # One frame's whole-map search does not place a segment (a symmetric scene
+                # offers a half-turn-wrong place): the next relocalisation must agree.
+                self.tracker.prediction_valid = False
+                note = f"relocalised; the segment since frame {segment.first} waits for a second"
+                lost = dataclasses.replace(track, path=TrackingPath.LOST)
+                return dataclasses.replace(lost, reason=f"{track.reason}; {note}"), None
+            self._segment = None
+            return track, segment
         if not track.lost:
             self._segment = None
-            return track, (segment if segment is not None and T_seg is not None else None)
+            return track, None
         if T_seg is None:  # the segment lost it too (or there is none): one starts here
             seed = self.config.run.seed + index
             self._segment = Segment(

@@ -136,15 +136,30 @@ def test_planes_the_map_culled_are_not_counted_as_new(rng: np.random.Generator) 
 
 
 def test_far_prediction_relocalises_from_corners(rng: np.random.Generator) -> None:
-    """1 m and 60 deg off: the gates reject every pair, a corner hypothesis finds the pose."""
+    """1 m and 60 deg off after a loss: the gates reject every pair, a corner hypothesis
+    finds the pose."""
     T = camera_pose()
     frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
     tracker = Tracker(TrackingConfig())
+    tracker.expect_jump()
     assert tracker.register(frame, map_view(), perturb(T, 1.0, 60.0)) is None
     assert len(primitive_hypotheses(frame, map_view(), TrackingConfig())) >= 2
     result = tracker._track(frame, map_view(), perturb(T, 1.0, 60.0), None, None)
     assert result.path == "relocalised"
     assert_pose_close(result.T_world_cam, T, 1e-6, 1e-4)
+
+
+def test_a_far_relocalisation_right_after_a_tracked_frame_is_not_taken_alone(
+    rng: np.random.Generator,
+) -> None:
+    """While tracking, no plausible motion explains a pose 1 m and 60 deg from the
+    prediction: the frame is lost (a segment then waits for a second relocalisation)."""
+    T = camera_pose()
+    frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    tracker = Tracker(TrackingConfig(icp=False, rgbd_odometry=False))
+    result = tracker._track(frame, map_view(), perturb(T, 1.0, 60.0), None, None)
+    assert result.lost
+    assert "relocalisation far from the last pose is not taken alone" in result.reason
 
 
 def test_without_relocalisation_or_fallbacks_the_frame_is_lost(rng: np.random.Generator) -> None:

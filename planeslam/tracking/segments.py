@@ -3,10 +3,14 @@
 When a frame cannot be placed in the map, a `Segment` starts at it: later frames are
 tracked in the segment's own frame (the camera frame of its first frame) against its
 most recent keyframe (planes, corners, edges and keypoints, the same estimator as in the
-map), while every frame is also tried against the whole map. The first frame that both
-relocalises in the map and tracks in the segment joins them: T_world_seg follows from its
-two poses, and every frame of the segment gets its world pose through it (the
-orchestrator re-anchors them on the joining frame, so later optimisation moves them too).
+map, and its dense fallbacks against the previous frame), while every frame is also
+tried against the whole map. A frame that tracks in the segment and is placed in the map
+near the map's prediction or by keypoints joins them; a frame placed by a whole-map
+relocalisation joins them only when a second one puts the segment at the same place
+(`confirms`: a symmetric scene offers places a half-turn off). T_world_seg follows from
+the joining frame's two poses, and every frame of the segment gets its world pose
+through it (the orchestrator re-anchors them on the joining frame, so later
+optimisation moves them too).
 A segment frame that the segment cannot track either starts a new segment; frames of a
 segment that never joins stay lost.
 
@@ -60,9 +64,22 @@ class Segment:
         self._last = np.eye(4)
         self._velocity = np.eye(4)
         self._last_keyframe = np.eye(4)
+        self.T_world_seg_candidate: np.ndarray | None = None
+        """(4, 4) where a relocalised frame put the segment, awaiting a second frame."""
         keypoints = result.keypoints if result is not None else None
         self.tracker.add_keyframe(index, np.eye(4), rgb, observation.cloud, keypoints)
         self.tracker.start(observation, np.eye(4), rgb, depth_m)
+
+    def confirms(self, T_world_cam: np.ndarray, T_seg_cam: np.ndarray) -> bool:
+        """Whether a relocalised frame's pose T_world_cam (4, 4), tracked at T_seg_cam (4, 4)
+        in the segment, puts the segment where an earlier relocalised frame did (within
+        `fast_max_jump_m` / `fast_max_jump_deg`); else it becomes the candidate."""
+        T_world_seg = T_world_cam @ invert_pose(T_seg_cam)
+        previous, self.T_world_seg_candidate = self.T_world_seg_candidate, T_world_seg
+        if previous is None:
+            return False
+        meters, degrees = pose_difference(previous, T_world_seg)
+        return meters <= self.config.fast_max_jump_m and degrees <= self.config.fast_max_jump_deg
 
     def track(
         self,
@@ -76,7 +93,7 @@ class Segment:
         result = self.tracker.track(
             observation, self._view, self._last @ self._velocity, rgb, depth_m
         )
-        if not result.path.maps:
+        if result.lost:  # a dense fallback's pose counts: the segment only chains motions
             return None
         T = result.T_world_cam
         self._velocity = invert_pose(self._last) @ T

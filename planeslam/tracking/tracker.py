@@ -22,12 +22,19 @@ Per frame:
    and the prediction; each is refined, and the best-supported trusted one wins. The path
    says what fixed the pose: `planes` (planes alone fixed all six directions),
    `planes+points` (the planes fixed some, other primitives the rest) or `points`.
-3. `relocalised`: nothing near the prediction fits: whole-map relocalisation
+3. `odometry`, then `icp` (right after a tracked frame only): nothing near the
+   prediction fits: RGB-D odometry, then ICP against the previous frame, from the
+   prediction, each accepted by its own overlap with that frame (not mapped; a plane
+   pose that fixed some directions keeps them: `planes+odometry`). Keypoints that agree
+   on no pose are no evidence against them: a repetitive texture gives many such.
+4. `relocalised`: nothing above gives a pose: whole-map relocalisation
    (`relocalise.relocalisation_candidates`: corner, plane-triple and edge hypotheses and
    the keyframes that share most descriptors, verified against all of the frame's
-   primitives), each candidate refined as in step 2.
-4. `odometry`, then `icp`: nothing above gives a pose: RGB-D odometry, then ICP against
-   the previous frame, from the prediction (not mapped).
+   primitives), each candidate refined as in step 2. Right after a tracked frame, a
+   relocalisation beyond the fast path's jump limit of the last pose is not taken on
+   this frame's evidence (a symmetric scene offers one a half-turn off): the frame is
+   lost, a segment starts, and two relocalisations that agree place it
+   (`planeslam.tracking.segments`).
 5. `lost`: nothing worked; the pose is the prediction and the frame is left out of the
    trajectory.
 
@@ -40,6 +47,7 @@ frame; every pose is T_world_cam (4, 4).
 
 from __future__ import annotations
 
+import enum
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -219,6 +227,31 @@ class _LazyKeypoints:
 
 
 _NO_POINTS = _LazyKeypoints(None)
+
+
+class ColourCheck(enum.Enum):
+    """What the colours say of a dense pose against the previous frame."""
+
+    CONFIRMS = "confirms"
+    """A textured view whose colours land on the same colours."""
+    CONTRADICTS = "contradicts"
+    """The colours differ by more than texture and noise explain: the pose is wrong."""
+    PLAIN = "plain"
+    """Too little texture to tell, and nothing contradicts the pose."""
+    UNKNOWN = "unknown"
+    """No colour, or too few pixels seen by both frames."""
+
+
+MAX_SPEED_M_S = 0.6
+"""Fastest plausible camera motion between two frames [m/s] (a walking robot, a hand)."""
+MAX_TURN_DEG_S = 60.0
+"""Fastest plausible camera turn between two frames [deg/s]."""
+COLOUR_MATCH_SHARE = 0.5
+"""A dense pose's colours match the previous frame's when their median grey difference is
+within this share of the frame's texture contrast (median absolute deviation)."""
+COLOUR_MIN_CONTRAST = 8.0
+"""Grey levels of contrast below which colours can neither confirm nor contradict a pose
+(sensor noise and shading differences stay below it)."""
 
 
 class Tracker:
@@ -713,12 +746,17 @@ class Tracker:
         keypoints: Keypoints | None,
         matches: PointMatches,
         T_pred: np.ndarray,
+        T_last: np.ndarray | None = None,
+        frame_gap_s: float = np.inf,
     ) -> JointSolve | None:
-        """The best-supported `joint` solution over the start poses that is corroborated:
-        by at least `points.min_inliers` point matches, or (while tracking, not after a
-        loss) by being within the fast path's correction of the prediction or by at least
-        `relocalise_min_planes` inlier planes. Planes alone far from a prediction prove
-        little: three of them always fit."""
+        """The best-supported `joint` solution over the start poses that is corroborated.
+        While tracking: within the fast path's correction of the prediction, or at a pose a
+        plausible motion from the last one T_last (4, 4), `frame_gap_s` seconds ago,
+        reaches (`_plausible`) with at least `points.min_inliers` point matches or
+        `relocalise_min_planes` inlier planes (a jump is not taken on one frame's
+        evidence: aliased keypoints agree on wrong poses too). After a loss: at least
+        `points.min_inliers` point matches (planes alone far from a prediction prove
+        little: three of them always fit)."""
         cfg = self.config
         best: JointSolve | None = None
         solved: list[np.ndarray] = []
@@ -731,13 +769,16 @@ class Tracker:
                 solved.append(candidate.T)
             if candidate is None or (best is not None and candidate.score <= best.score):
                 continue
-            corroborated = candidate.point_inliers >= cfg.points.min_inliers or (
-                self.prediction_valid
-                and (
-                    self._near(candidate.T, T_pred)
-                    or candidate.constraints.terms["planes"] >= cfg.relocalise_min_planes
+            if self.prediction_valid:  # tracking: no jump on one frame's evidence
+                corroborated = self._near(candidate.T, T_pred) or (
+                    self._plausible(candidate.T, T_last, frame_gap_s)
+                    and (
+                        candidate.point_inliers >= cfg.points.min_inliers
+                        or candidate.constraints.terms["planes"] >= cfg.relocalise_min_planes
+                    )
                 )
-            )
+            else:
+                corroborated = candidate.point_inliers >= cfg.points.min_inliers
             if corroborated:
                 best = candidate
         return best
@@ -856,6 +897,42 @@ class Tracker:
             return False
         close = np.abs(z_prev[seen] - p[inside][seen, 2]) <= cfg.icp_max_distance_m
         return bool(np.mean(close) >= cfg.icp_min_fitness)
+
+    def _colour_check(self, cloud: np.ndarray | None, rgbd, T_world_cam: np.ndarray) -> ColourCheck:
+        """Whether this frame's colours, moved by T_world_cam (4, 4) into the previous frame,
+        match the colours there where the depths agree (`ColourCheck`): the median grey
+        difference against COLOUR_MATCH_SHARE of the frame's texture contrast (the median
+        absolute deviation of its grey levels) and COLOUR_MIN_CONTRAST."""
+        if cloud is None or rgbd is None or self._previous_rgbd is None or self.camera is None:
+            return ColourCheck.UNKNOWN
+        assert self._T_world_previous is not None, "set with the previous frame"
+        cam, s = self.camera, self.config.icp_stride
+        xyz = cloud[::s, ::s].reshape(-1, 3)
+        grey = rgbd[0][::s, ::s].reshape(-1, 3).astype(np.float32).mean(axis=1)
+        keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
+        p = transform_points(invert_pose(self._T_world_previous) @ T_world_cam, xyz[keep])
+        grey = grey[keep]
+        front = p[:, 2] > 0.1
+        p, grey = p[front], grey[front]
+        u = np.rint(cam.fx * p[:, 0] / p[:, 2] + cam.cx).astype(np.int64)
+        v = np.rint(cam.fy * p[:, 1] / p[:, 2] + cam.cy).astype(np.int64)
+        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        rgb_prev, depth_prev = self._previous_rgbd
+        z_prev = depth_prev[v[inside], u[inside]]
+        shared = (z_prev > 0) & (np.abs(z_prev - p[inside, 2]) <= self.config.icp_max_distance_m)
+        if np.count_nonzero(shared) < 100:
+            return ColourCheck.UNKNOWN
+        g_cur = grey[inside][shared]
+        g_prev = rgb_prev[v[inside][shared], u[inside][shared]].astype(np.float32).mean(axis=1)
+        difference = float(np.median(np.abs(g_prev - g_cur)))
+        contrast = float(np.median(np.abs(g_cur - np.median(g_cur))))
+        if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
+            return ColourCheck.CONTRADICTS
+        if contrast < COLOUR_MIN_CONTRAST:
+            return ColourCheck.PLAIN
+        if difference <= COLOUR_MATCH_SHARE * contrast:
+            return ColourCheck.CONFIRMS
+        return ColourCheck.UNKNOWN
 
     def _rgbd(self, rgbd, T_world_cam_init: np.ndarray) -> np.ndarray | None:
         """T_world_cam by RGB-D odometry against the previous frame, or None. `rgbd` and the
@@ -1020,30 +1097,54 @@ class Tracker:
             else:
                 reasons.append(f"{len(matches)} point matches agree on no pose")
         starts.append(T_pred)
-        best = self._best_joint(frame, view, starts, keypoints, matches, T_pred)
-        path: TrackingPath | None = None
+        best = self._best_joint(
+            frame,
+            view,
+            starts,
+            keypoints,
+            matches,
+            T_pred,
+            T_pred if T_last is None else T_last,
+            frame_gap_s,
+        )
         if best is not None:
-            path = best.path
-        elif cfg.relocalise and not view.empty:
-            best = self.relocalise(frame, view, T_pred, keypoints)
-            path = TrackingPath.RELOCALISED
-            if best is None:
-                reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
-        if best is not None and path is not None:
             return self._result(
                 frame,
                 view,
                 best.T,
                 best.association,
-                path,
+                best.path,
                 "; ".join(reasons),
                 best.constraints,
                 keypoints,
             )
-        jumped = len(matches) >= 2 * cfg.points.min_inliers  # matched, yet no pose: a jump
-        if jumped:
-            reasons.append("the frame's keypoints contradict the recent keyframes (a jump?)")
-        elif self.prediction_valid:
+        # A whole-map search, taken right after a tracked frame only where a plausible
+        # motion since then explains it and the colours do not contradict it (a symmetric
+        # scene offers places a half-turn off); after a loss, a segment confirms it.
+        if cfg.relocalise and not view.empty:
+            found = self.relocalise(frame, view, T_pred, keypoints)
+            if found is None:
+                reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
+            elif self.prediction_valid and not self._plausible(
+                found.T, T_pred if T_last is None else T_last, frame_gap_s
+            ):
+                reasons.append("a relocalisation no plausible motion explains is not taken")
+            elif self._colour_check(cloud, rgbd, found.T) is ColourCheck.CONTRADICTS:
+                reasons.append("a relocalisation whose colours contradict the last frame")
+            else:
+                return self._result(
+                    frame,
+                    view,
+                    found.T,
+                    found.association,
+                    TrackingPath.RELOCALISED,
+                    "; ".join(reasons),
+                    found.constraints,
+                    keypoints,
+                )
+        # Keypoints that agree on no pose (a repetitive texture gives many) are no evidence
+        # of a jump: the dense fallbacks against the last frame still run.
+        if self.prediction_valid:
             dense = self._dense(
                 frame, view, T_pred, trusted, cloud, rgbd, reasons, keypoints, slides
             )
@@ -1085,7 +1186,15 @@ class Tracker:
             if not self._agrees(cloud, T):
                 reasons.append(f"{path.value} result does not overlap the previous frame")
                 continue
-            if slides() and not self._keypoints_agree(T, keypoints):
+            colours = self._colour_check(cloud, rgbd, T)
+            if colours is ColourCheck.CONTRADICTS:
+                reasons.append(f"{path.value} result: the colours contradict the previous frame")
+                continue
+            if (
+                colours is ColourCheck.UNKNOWN
+                and slides()
+                and not self._keypoints_agree(T, keypoints)
+            ):
                 reasons.append(
                     f"{path.value} result unconfirmed: the frame's depth is parallel planes "
                     "and its keypoints do not agree"
@@ -1139,6 +1248,19 @@ class Tracker:
             return False
         jumps = [(meters, degrees)] + ([] if T_last is None else [pose_difference(T_last, T)])
         return any(m <= cfg.fast_max_jump_m and d <= cfg.fast_max_jump_deg for m, d in jumps)
+
+    def _plausible(self, T: np.ndarray, T_last: np.ndarray | None, gap_s: float) -> bool:
+        """Whether a motion from T_last (4, 4) to T (4, 4) in `gap_s` seconds is one a
+        hand-held or robot-borne camera makes: within the fast path's jump limit, or within
+        MAX_SPEED_M_S and MAX_TURN_DEG_S over the gap."""
+        if T_last is None:
+            return True
+        meters, degrees = pose_difference(T_last, T)
+        gap = gap_s if np.isfinite(gap_s) else 0.0
+        cfg = self.config
+        return meters <= max(cfg.fast_max_jump_m, MAX_SPEED_M_S * gap) and degrees <= max(
+            cfg.fast_max_jump_deg, MAX_TURN_DEG_S * gap
+        )
 
     def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
         """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""
