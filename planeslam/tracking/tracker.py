@@ -1252,14 +1252,13 @@ class Tracker:
     def _plausible(self, T: np.ndarray, T_last: np.ndarray | None, gap_s: float) -> bool:
         """Whether a motion from T_last (4, 4) to T (4, 4) in `gap_s` seconds is one a
         hand-held or robot-borne camera makes: within the fast path's jump limit, or within
-        MAX_SPEED_M_S and MAX_TURN_DEG_S over the gap."""
-        if T_last is None:
+        MAX_SPEED_M_S and MAX_TURN_DEG_S over the gap (True without a last pose or time)."""
+        if T_last is None or not np.isfinite(gap_s):  # no last pose or time: no bound
             return True
         meters, degrees = pose_difference(T_last, T)
-        gap = gap_s if np.isfinite(gap_s) else 0.0
         cfg = self.config
-        return meters <= max(cfg.fast_max_jump_m, MAX_SPEED_M_S * gap) and degrees <= max(
-            cfg.fast_max_jump_deg, MAX_TURN_DEG_S * gap
+        return meters <= max(cfg.fast_max_jump_m, MAX_SPEED_M_S * gap_s) and degrees <= max(
+            cfg.fast_max_jump_deg, MAX_TURN_DEG_S * gap_s
         )
 
     def _point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
