@@ -53,6 +53,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
@@ -246,6 +247,8 @@ MAX_SPEED_M_S = 0.6
 """Fastest plausible camera motion between two frames [m/s] (a walking robot, a hand)."""
 MAX_TURN_DEG_S = 60.0
 """Fastest plausible camera turn between two frames [deg/s]."""
+COLOUR_BLUR_PX = 2.0
+"""Gaussian sigma [px] of the blur applied before colours are compared."""
 COLOUR_MATCH_SHARE = 0.5
 """A dense pose's colours match the previous frame's when their median grey difference is
 within this share of the frame's texture contrast (median absolute deviation)."""
@@ -908,7 +911,7 @@ class Tracker:
         assert self._T_world_previous is not None, "set with the previous frame"
         cam, s = self.camera, self.config.icp_stride
         xyz = cloud[::s, ::s].reshape(-1, 3)
-        grey = rgbd[0][::s, ::s].reshape(-1, 3).astype(np.float32).mean(axis=1)
+        grey = _smooth_grey(rgbd[0])[::s, ::s].reshape(-1)
         keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
         p = transform_points(invert_pose(self._T_world_previous) @ T_world_cam, xyz[keep])
         grey = grey[keep]
@@ -923,7 +926,7 @@ class Tracker:
         if np.count_nonzero(shared) < 100:
             return ColourCheck.UNKNOWN
         g_cur = grey[inside][shared]
-        g_prev = rgb_prev[v[inside][shared], u[inside][shared]].astype(np.float32).mean(axis=1)
+        g_prev = _smooth_grey(rgb_prev)[v[inside][shared], u[inside][shared]]
         difference = float(np.median(np.abs(g_prev - g_cur)))
         contrast = float(np.median(np.abs(g_cur - np.median(g_cur))))
         if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
@@ -1312,6 +1315,14 @@ class Tracker:
                 frame_terms(frame, view, assoc, self.sensor) if self.config.final_poses else None
             ),
         )
+
+
+def _smooth_grey(rgb: np.ndarray) -> np.ndarray:
+    """(H, W) float32 grey levels of an (H, W, 3) uint8 image, blurred by COLOUR_BLUR_PX:
+    colours compared across a wide baseline then differ by the surfaces' colours, not by
+    which pixel of a fine texture each sample hit."""
+    grey = cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2GRAY).astype(np.float32)
+    return cv2.GaussianBlur(grey, (0, 0), COLOUR_BLUR_PX)
 
 
 def parallel_share(observation: FrameObservation, max_angle_deg: float = 10.0) -> float:
