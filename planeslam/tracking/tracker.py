@@ -1122,8 +1122,9 @@ class Tracker:
                 keypoints,
             )
         # A whole-map search, taken right after a tracked frame only where a plausible
-        # motion since then explains it and the colours do not contradict it (a symmetric
-        # scene offers places a half-turn off); after a loss, a segment confirms it.
+        # motion since then explains it and, between close frames, the colours do not
+        # contradict it (a symmetric scene offers places a half-turn off); after a loss, a
+        # segment confirms it.
         if cfg.relocalise and not view.empty:
             found = self.relocalise(frame, view, T_pred, keypoints)
             if found is None:
@@ -1132,7 +1133,11 @@ class Tracker:
                 found.T, T_pred if T_last is None else T_last, frame_gap_s
             ):
                 reasons.append("a relocalisation no plausible motion explains is not taken")
-            elif self._colour_check(cloud, rgbd, found.T) is ColourCheck.CONTRADICTS:
+            elif (
+                self.prediction_valid
+                and frame_gap_s <= cfg.fast_max_gap_s
+                and self._colour_check(cloud, rgbd, found.T) is ColourCheck.CONTRADICTS
+            ):
                 reasons.append("a relocalisation whose colours contradict the last frame")
             else:
                 return self._result(
