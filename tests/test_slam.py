@@ -79,9 +79,13 @@ def test_isam2_beats_merge_on_the_loop(loop: Path) -> None:
 @pytest.mark.slow
 def test_keyframes_far_apart_still_track(loop: Path) -> None:
     """Every 4th frame of the 60-frame loop (15 keyframes around the room, as every 20th of
-    the default 300): planes and corners need no small-motion assumption."""
-    _, summary, ev = run(loop, "merge", every=4)
-    assert summary.lost_frames == 0, summary.paths
+    the default 300): planes and corners need no small-motion assumption. Its steps (about
+    30 cm and 24 deg in 0.13 s) are faster than any plausible motion, so a relocalisation
+    is not taken on one frame: the second frame waits in a segment for a second one, and
+    every frame has its pose at the end."""
+    slam, summary, ev = run(loop, "merge", every=4)
+    assert summary.lost_frames <= 1, summary.paths
+    assert slam.tracked_frames == 15
     assert ev.ate_rmse_m < 0.02
 
 
