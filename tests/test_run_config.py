@@ -18,7 +18,8 @@ from planeslam.sim.render import synthesize
 @pytest.fixture(scope="module")
 def box_room(tmp_path_factory: pytest.TempPathFactory) -> Path:
     root = tmp_path_factory.mktemp("data") / "box_room_circle"
-    synthesize("box_room_circle", root, frames=6, seed=0)
+    # 12 views 30 deg apart, 1 s between them: within a plausible motion (60 deg/s)
+    synthesize("box_room_circle", root, frames=12, seed=0)
     return root
 
 
