@@ -1126,28 +1126,28 @@ class Tracker:
         # contradict it (a symmetric scene offers places a half-turn off); after a loss, a
         # segment confirms it.
         if cfg.relocalise and not view.empty:
-            found = self.relocalise(frame, view, T_pred, keypoints)
-            if found is None:
+            placed = self.relocalise(frame, view, T_pred, keypoints)
+            if placed is None:
                 reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
             elif self.prediction_valid and not self._plausible(
-                found.T, T_pred if T_last is None else T_last, frame_gap_s
+                placed.T, T_pred if T_last is None else T_last, frame_gap_s
             ):
                 reasons.append("a relocalisation no plausible motion explains is not taken")
             elif (
                 self.prediction_valid
                 and frame_gap_s <= cfg.fast_max_gap_s
-                and self._colour_check(cloud, rgbd, found.T) is ColourCheck.CONTRADICTS
+                and self._colour_check(cloud, rgbd, placed.T) is ColourCheck.CONTRADICTS
             ):
                 reasons.append("a relocalisation whose colours contradict the last frame")
             else:
                 return self._result(
                     frame,
                     view,
-                    found.T,
-                    found.association,
+                    placed.T,
+                    placed.association,
                     TrackingPath.RELOCALISED,
                     "; ".join(reasons),
-                    found.constraints,
+                    placed.constraints,
                     keypoints,
                 )
         # Keypoints that agree on no pose (a repetitive texture gives many) are no evidence
