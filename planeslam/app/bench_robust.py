@@ -6,15 +6,14 @@ load average."""
 from __future__ import annotations
 
 import os
-import platform
 import re
-import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
+from planeslam.app.bench_speed import code_commit, cpu_model, load_average
 from planeslam.app.progress import progress_bar
 from planeslam.core.config import ConfigLayer
 from planeslam.core.errors import ConfigError
@@ -42,7 +41,8 @@ class BenchContext:
 
     @classmethod
     def now(cls, command: str) -> BenchContext:
-        return cls(command, git_commit(), _utc_now(), machine_name(), os.getloadavg())
+        machine = f"{cpu_model()}, {os.cpu_count()} cores"
+        return cls(command, code_commit(), _utc_now(), machine, load_average())
 
     def heading_lines(self, seconds: float) -> str:
         load = " ".join(f"{v:.2f}" for v in self.load_average)
@@ -55,43 +55,6 @@ class BenchContext:
 
 def _utc_now() -> str:
     return datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M UTC")
-
-
-def git_commit() -> str:
-    """The short commit of the planeslam checkout, with '+changes' when the tree is dirty;
-    'unknown' outside a git checkout."""
-    root = Path(__file__).resolve().parents[2]
-    try:
-        commit = subprocess.run(
-            ["git", "-C", str(root), "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-            timeout=10,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-            capture_output=True,
-            text=True,
-            check=True,
-            timeout=10,
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return commit + ("+changes" if dirty else "")
-
-
-def machine_name() -> str:
-    """'<cpu model>, <n> cores' (Linux /proc/cpuinfo, else the platform's processor)."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} cores"
 
 
 def replace_section(page: str, label: str, section: str) -> str:

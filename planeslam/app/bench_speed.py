@@ -345,18 +345,19 @@ def append_markdown(result: SpeedResult, path: str | Path) -> Path:
 def machine_now(load_before: tuple[float, float, float], started_utc: str) -> MachineInfo:
     """MachineInfo with the code's commit and the load now as 'after'."""
     return MachineInfo(
-        cpu_model=_cpu_model(),
+        cpu_model=cpu_model(),
         cores=len(os.sched_getaffinity(0))
         if hasattr(os, "sched_getaffinity")
         else os.cpu_count() or 1,
         date_utc=started_utc,
         commit=code_commit(),
         load_before=load_before,
-        load_after=_loadavg(),
+        load_after=load_average(),
     )
 
 
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The processor's model name (Linux /proc/cpuinfo, else the platform's)."""
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.is_file():
         for line in cpuinfo.read_text(errors="replace").splitlines():
@@ -365,7 +366,8 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
-def _loadavg() -> tuple[float, float, float]:
+def load_average() -> tuple[float, float, float]:
+    """The 1, 5 and 15 minute load averages (NaN where the system has none)."""
     try:
         return os.getloadavg()
     except OSError:
@@ -495,7 +497,7 @@ def bench_speed(
         )
     sources = [_open_source(f, frames, config, overrides) for f in folders]
     started = datetime.now(timezone.utc).strftime("%Y-%m-%d %H:%M")
-    load_before = _loadavg()
+    load_before = load_average()
     reference = [reference_workload()]
     # (kind, dataset) -> per round: (seconds, frames, CPU seconds, reference around the run)
     raw: dict[tuple[str, str], list[tuple[float, int, float, float]]] = {}
