@@ -305,6 +305,8 @@ class Tracker:
         self._previous_cloud: np.ndarray | None = None
         """(H, W, 3) organised cloud of the last tracked frame (ICP fallback)."""
         self._previous_rgbd: tuple[np.ndarray, np.ndarray] | None = None
+        self._greys: list[tuple[np.ndarray, np.ndarray]] = []
+        """(rgb, its `_smooth_grey`) of the last two images compared by colour."""
         self._T_world_previous: np.ndarray | None = None
         self._previous_stamp = -np.inf
         """Timestamp of the last tracked frame [s]."""
@@ -911,7 +913,7 @@ class Tracker:
         assert self._T_world_previous is not None, "set with the previous frame"
         cam, s = self.camera, self.config.icp_stride
         xyz = cloud[::s, ::s].reshape(-1, 3)
-        grey = _smooth_grey(rgbd[0])[::s, ::s].reshape(-1)
+        grey = self._grey(rgbd[0])[::s, ::s].reshape(-1)
         keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
         p = transform_points(invert_pose(self._T_world_previous) @ T_world_cam, xyz[keep])
         grey = grey[keep]
@@ -926,7 +928,7 @@ class Tracker:
         if np.count_nonzero(shared) < 100:
             return ColourCheck.UNKNOWN
         g_cur = grey[inside][shared]
-        g_prev = _smooth_grey(rgb_prev)[v[inside][shared], u[inside][shared]]
+        g_prev = self._grey(rgb_prev)[v[inside][shared], u[inside][shared]]
         difference = float(np.median(np.abs(g_prev - g_cur)))
         contrast = float(np.median(np.abs(g_cur - np.median(g_cur))))
         if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
@@ -936,6 +938,16 @@ class Tracker:
         if difference <= COLOUR_MATCH_SHARE * contrast:
             return ColourCheck.CONFIRMS
         return ColourCheck.UNKNOWN
+
+    def _grey(self, rgb: np.ndarray) -> np.ndarray:
+        """`_smooth_grey(rgb)`, computed once per image: a frame's colours are compared for
+        each fallback and relocalisation, and again as the previous frame's."""
+        for image, grey in self._greys:
+            if image is rgb:
+                return grey
+        grey = _smooth_grey(rgb)
+        self._greys = [*self._greys[-1:], (rgb, grey)]
+        return grey
 
     def _rgbd(self, rgbd, T_world_cam_init: np.ndarray) -> np.ndarray | None:
         """T_world_cam by RGB-D odometry against the previous frame, or None. `rgbd` and the
