@@ -252,10 +252,11 @@ class SLAM:
         """(absorbed, surviving) map plane ids joined since the last keyframe went to the
         backend, which ties them in the graph with the next one."""
         self._loop_search: LoopSearch | None = None
-        """Each keyframe's loop search, beside tracking (`Tracker.search_loop`), when loops
+        """Each keyframe's loop search, beside tracking (`KeyframeLoops.search`), when loops
         are on and the backend takes them."""
-        if self.backend.takes_loops and config.tracking.loops.enabled:
-            self._loop_search = LoopSearch(self.tracker.search_loop)
+        loops = self.tracker.loops
+        if self.backend.takes_loops and config.tracking.loops.enabled and loops is not None:
+            self._loop_search = LoopSearch(loops.search)
             weakref.finalize(self, self._loop_search.close)  # dropped without close
         self.loops: list[tuple[int, int]] = []
         """(keyframe, older keyframe) frame indices of every loop constraint sent to the
@@ -560,7 +561,7 @@ class SLAM:
         """Merge the frame into the map and hand it to the backend (after applying the
         previous keyframe's update if it is still pending) with the previous keyframe's
         loop constraint, if its search found one, and start this keyframe's loop search
-        on the loop search's thread (`Tracker.search_loop`: from its `keypoints`, or
+        on the loop search's thread (`KeyframeLoops.search`: from its `keypoints`, or
         detected in `rgb`). Returns the frame's pose: corrected by that update, or with
         `lag_frames` 0 the backend's own."""
         T_world_cam = track.T_world_cam
@@ -577,7 +578,8 @@ class SLAM:
             loops = self._collect_loop()
             cloud = observation.cloud
             images = None if rgb is None or cloud is None else (rgb, cloud)
-            query = self.tracker.loop_query(index, observation, T_world_cam, keypoints, images)
+            assert self.tracker.loops is not None  # with the loop search
+            query = self.tracker.loops.query(index, observation, T_world_cam, keypoints, images)
             if query is not None:
                 self._loop_search.submit(query)
             stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
@@ -641,7 +643,8 @@ class SLAM:
         assert self._loop_search is not None
         outcome = self._loop_search.collect()
         if outcome is not None:
-            self.tracker.take_loop_keypoints(outcome)
+            assert self.tracker.loops is not None  # with the loop search
+            self.tracker.loops.take_keypoints(outcome)
         return outcome
 
     def _apply_update(

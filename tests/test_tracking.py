@@ -16,15 +16,10 @@ from planeslam.tracking import hypotheses
 from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import PoseConstraints
-from planeslam.tracking.relocalise import primitive_hypotheses
-from planeslam.tracking.tracker import (
-    FrameView,
-    JointSolve,
-    MapView,
-    Tracker,
-    _LazyKeypoints,
-    is_rival,
-)
+from planeslam.tracking.joint import JointSolve
+from planeslam.tracking.keypoints import LazyKeypoints
+from planeslam.tracking.relocalise import is_rival, primitive_hypotheses
+from planeslam.tracking.tracker import FrameView, MapView, Tracker
 
 # A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
 # visible corner is at (1.0, 0.8, 0.2); every normal faces the camera side (+x, +y, +z),
@@ -142,7 +137,7 @@ def test_far_prediction_relocalises_from_corners(rng: np.random.Generator) -> No
     frame = observe(T, [0, 1, 2, 3, 4, 5], rng)
     tracker = Tracker(TrackingConfig())
     tracker.expect_jump()
-    assert tracker.register(frame, map_view(), perturb(T, 1.0, 60.0)) is None
+    assert tracker.planes.register(frame, map_view(), perturb(T, 1.0, 60.0)) is None
     assert len(primitive_hypotheses(frame, map_view(), TrackingConfig())) >= 2
     result = tracker._track(frame, map_view(), perturb(T, 1.0, 60.0), None, None)
     assert result.path == "relocalised"
@@ -278,7 +273,7 @@ def test_two_planes_and_an_edge_give_the_pose(rng: np.random.Generator) -> None:
     assert min(errors) < 1e-9
     scores = hypotheses.score_hypotheses(frame, view, found, gate, 0.1, 0.25)
     assert_pose_close(found[int(np.argmax(scores))], T, 1e-9, 1e-6)
-    solved = Tracker(TrackingConfig()).joint(
+    solved = Tracker(TrackingConfig()).joint.solve(
         frame, view, found[int(np.argmax(scores))], None, _no_matches()
     )
     assert solved is not None
@@ -528,7 +523,7 @@ def test_a_plane_pose_with_a_weakly_fixed_translation_needs_the_keypoints(
     frame = dataclasses.replace(
         observe(T, [0, 3, 4, 2], rng), weights=np.array([1.0, 1.0, 1.0, 0.02])
     )
-    no_keypoints = _LazyKeypoints(lambda: None)
+    no_keypoints = LazyKeypoints(lambda: None)
     weak = Tracker(TrackingConfig())._track(
         frame, map_view(), T, None, None, no_keypoints, frame_gap_s=0.033
     )

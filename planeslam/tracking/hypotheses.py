@@ -274,3 +274,12 @@ def _object_support(frame, view, T, max_distance_m) -> np.ndarray:
                 continue
             fits[i, j] = all(any(s <= 1.2 * m + 0.05 for m in size_m) for s in size_o)
     return np.count_nonzero((near & fits[None]).any(axis=2), axis=1)
+
+
+def agreeing_matches(
+    poses: np.ndarray, p_cam: np.ndarray, p_world: np.ndarray, threshold: np.ndarray
+) -> np.ndarray:
+    """(H, M) bool: the matches (camera (M, 3) -> world (M, 3)) within their (M,)
+    thresholds [m] under each of the (H, 4, 4) poses."""
+    dist = np.linalg.norm(moved_points(poses, p_cam) - p_world[None], axis=2)
+    return dist < threshold[None]

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -428,3 +429,20 @@ def ransac_pose(
     if np.count_nonzero(best) < min_inliers:
         return None
     return PointPose(T, best)
+
+
+class LazyKeypoints:
+    """A frame's keypoints, detected on first use."""
+
+    def __init__(self, detect: Callable[[], Keypoints] | None) -> None:
+        self._detect = detect
+        self.value: Keypoints | None = None
+
+    def get(self) -> Keypoints | None:
+        if self.value is None and self._detect is not None:
+            self.value = self._detect()
+            self._detect = None
+        return self.value
+
+
+NO_KEYPOINTS = LazyKeypoints(None)

@@ -30,15 +30,18 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from planeslam.core.camera import DepthNoiseConfig
+from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.geometry import invert_pose
 from planeslam.core.types import LoopConstraint
-from planeslam.tracking.config import LoopConfig, PointConfig
+from planeslam.tracking.config import LoopConfig, PointConfig, TrackingConfig
 from planeslam.tracking.hypotheses import pose_difference
+from planeslam.tracking.joint import JointEstimator
 from planeslam.tracking.keypoints import (
+    KeypointDetector,
     KeypointMap,
     Keypoints,
     PointMatches,
@@ -46,6 +49,10 @@ from planeslam.tracking.keypoints import (
     inlier_threshold,
     ransac_pose,
 )
+from planeslam.tracking.views import FrameView, frame_as_map
+
+if TYPE_CHECKING:
+    from planeslam.frontend.pipeline import FrameObservation
 
 logger = logging.getLogger(__name__)
 
@@ -222,3 +229,97 @@ class LoopSearch:
         """Drop a pending search and stop the worker once it is idle (idempotent)."""
         self._pending = None
         self._executor.shutdown(wait=False, cancel_futures=True)
+
+
+class KeyframeLoops:
+    """The tracker's loop search: queries at keyframes (`query`), the search itself
+    (`search`, on the loop thread) with the joint estimate refining a loop's pose."""
+
+    def __init__(
+        self,
+        config: TrackingConfig,
+        keypoint_map: KeypointMap,
+        camera: CameraConfig,
+        sensor: DepthNoiseConfig,
+        joint: JointEstimator,
+        seed: int,
+    ) -> None:
+        self.config = config
+        self.keypoint_map = keypoint_map
+        self.camera = camera
+        self.sensor = sensor
+        self.joint = joint
+        self._keyframe_frames: dict[int, FrameView] = {}
+        """Each keyframe's observation, camera frame (the older side of later loops)."""
+        self._rng = np.random.default_rng([seed, 1])
+        """The loop search's own draws (it runs beside tracking's)."""
+        self._detector: KeypointDetector | None = None
+
+    def query(
+        self,
+        index: int,
+        observation: FrameObservation,
+        T_world_cam: np.ndarray,
+        keypoints: Keypoints | None,
+        images: tuple[np.ndarray, np.ndarray] | None,
+    ) -> LoopQuery | None:
+        """New keyframe `index`'s loop search (`loop_query`: `observation`, tracked at
+        T_world_cam (4, 4), with its keypoints or the (rgb, cloud) `images` to detect them
+        in), or None when loops are off. The keyframe's observation is kept for later loops
+        against it."""
+        if not self.config.loops.enabled:
+            return None
+        self._keyframe_frames[index] = FrameView.of(observation, self.camera)
+        return loop_query(
+            self.keypoint_map, index, T_world_cam, self.config.loops, keypoints, images
+        )
+
+    def search(self, query: LoopQuery) -> LoopOutcome:
+        """The loop constraint of `query`'s keyframe against an older keyframe it revisits
+        (`place_loop`). With `loops.refine_planes` the points' relative pose is refined by
+        the joint estimate over both frames' planes, corners and edges and the point
+        matches (the older keyframe's observation as the map), and taken only when that is
+        trusted and within `loops.refine_max_step_*` of it. Safe on another thread than
+        tracking's (`LoopSearch`): it uses its own detector and random generator and reads
+        kept observations only."""
+        cfg = self.config
+        keypoints = query.keypoints
+        if keypoints is None:
+            assert query.images is not None  # loop_query: keypoints or images
+            keypoints = self._loop_detector().detect(*query.images)
+        frame = self._keyframe_frames[query.index]
+
+        def refine(old: int, T_old_cam: np.ndarray, matches: PointMatches) -> np.ndarray | None:
+            old_frame = self._keyframe_frames.get(old)
+            if old_frame is None:
+                return None
+            solve = self.joint.solve(
+                frame, frame_as_map(old_frame, np.eye(4)), T_old_cam, keypoints, matches
+            )
+            if solve is None:
+                return None
+            meters, degrees = pose_difference(T_old_cam, solve.T)
+            if meters > cfg.loops.refine_max_step_m or degrees > cfg.loops.refine_max_step_deg:
+                return None
+            return solve.T
+
+        loop = place_loop(
+            query,
+            keypoints,
+            cfg.loops,
+            cfg.points,
+            self.sensor,
+            self._rng,
+            refine if cfg.loops.refine_planes else None,
+        )
+        return LoopOutcome(query.index, keypoints, loop)
+
+    def take_keypoints(self, outcome: LoopOutcome) -> None:
+        """The keypoints a loop search detected join the keypoint map's keyframe."""
+        self.keypoint_map.give_keypoints(outcome.index, outcome.keypoints)
+
+    def _loop_detector(self) -> KeypointDetector:
+        """The loop search's own ORB detector (OpenCV's is not shared across threads)."""
+        if self._detector is None:
+            self._detector = KeypointDetector(self.camera, self.sensor, self.config.points)
+        return self._detector

@@ -7,19 +7,24 @@ and a point RANSAC gives one more candidate (the only one when its inliers outwe
 that a pose elsewhere could fit: then no rival can exist). Every candidate is verified
 against all of the frame's primitives (`hypotheses.score_hypotheses`; the point matches
 that agree under it add to the best-scored candidates); the best `relocalise_candidates`
-go on to the tracker's robust estimate. Ties go to the candidate nearest the prediction, so a
-symmetric room keeps its orientation when nothing else tells them apart.
+go on to the robust estimate (`relocalise`). Ties go to the candidate nearest the
+prediction, so a symmetric room keeps its orientation when nothing else tells them apart.
+
+`relocalise` refines the candidates by the joint estimate and takes the best only with
+more support than a minimal set gives and without a rival elsewhere (`is_rival`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import logging
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from planeslam.core.camera import DepthNoiseConfig
 from planeslam.tracking import hypotheses
 from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.joint import JointEstimator, JointSolve
 from planeslam.tracking.keypoints import (
     KeypointMap,
     Keypoints,
@@ -28,6 +33,8 @@ from planeslam.tracking.keypoints import (
     ransac_pose,
 )
 from planeslam.tracking.views import FrameView, MapView
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -112,7 +119,7 @@ def relocalisation_candidates(
     if len(p_cam):  # the points' say, for the point pose and the best of the rest
         top = np.argsort(-scores, kind="stable")[: 8 * cfg.relocalise_candidates]
         top = np.union1d(top, [0])  # the point RANSAC pose comes first
-        agreeing = agreeing_matches(poses[top], p_cam, matches.points_world, threshold)
+        agreeing = hypotheses.agreeing_matches(poses[top], p_cam, matches.points_world, threshold)
         scores[top] += np.count_nonzero(agreeing, axis=1) / 10.0
     distance = np.linalg.norm(poses[:, :3, 3] - T_pred[:3, 3], axis=1)
     order = np.lexsort((distance, -np.round(scores, 6)))
@@ -122,7 +129,7 @@ def relocalisation_candidates(
 
 def _points_decide(frame: FrameView, inliers: int, matches: int, cfg: TrackingConfig) -> bool:
     """Whether the point pose's `inliers` of `matches` leave no room for a rival (see
-    `Tracker.relocalise`): a pose elsewhere could at most fit all the frame's planes and
+    `relocalise`): a pose elsewhere could at most fit all the frame's planes and
     corners and the other matches, and that would score below `relocalise_ambiguity` of
     the inliers' own score, so the primitive hypotheses need not be made."""
     most_elsewhere = len(frame.plane_ids) + 2.0 * len(frame.corner_points)
@@ -130,15 +137,6 @@ def _points_decide(frame: FrameView, inliers: int, matches: int, cfg: TrackingCo
     return inliers >= cfg.relocalise_min_points and (
         most_elsewhere < cfg.relocalise_ambiguity * inliers / 10.0
     )
-
-
-def agreeing_matches(
-    poses: np.ndarray, p_cam: np.ndarray, p_world: np.ndarray, threshold: np.ndarray
-) -> np.ndarray:
-    """(H, M) bool: the matches (camera (M, 3) -> world (M, 3)) within their (M,)
-    thresholds [m] under each of the (H, 4, 4) poses."""
-    dist = np.linalg.norm(hypotheses.moved_points(poses, p_cam) - p_world[None], axis=2)
-    return dist < threshold[None]
 
 
 def _distinct(poses: np.ndarray, order: np.ndarray, count: int) -> np.ndarray:
@@ -152,3 +150,87 @@ def _distinct(poses: np.ndarray, order: np.ndarray, count: int) -> np.ndarray:
         if len(kept) == count:
             break
     return np.array(kept, dtype=np.int64)
+
+
+def relocalise(
+    frame: FrameView,
+    view: MapView,
+    T_pred: np.ndarray,
+    keypoints: Keypoints | None,
+    keypoint_map: KeypointMap | None,
+    joint: JointEstimator,
+) -> JointSolve | None:
+    """The best candidate of a whole-map search (`relocalisation_candidates`), refined
+    by `joint`. Taken only with more support than a minimal set gives (at least
+    `relocalise_min_planes` inlier planes that are `relocalise_min_plane_fraction` of the
+    frame's, or `relocalise_min_points` inlier point matches) and without a rival
+    (`is_rival`): a refined candidate elsewhere with nearly its score and other evidence
+    means the map is ambiguous there (a symmetric room), and the frame stays lost. Point
+    matches count when they agree with a pose within their inlier threshold."""
+    cfg = joint.config
+    candidates = relocalisation_candidates(
+        frame, view, keypoints, keypoint_map, cfg, joint.sensor, joint.rng, T_pred
+    )
+    solved = [
+        s
+        for s in (
+            joint.solve(frame, view, T0, keypoints, candidates.matches) for T0 in candidates.poses
+        )
+        if s is not None
+    ]
+    if not solved:
+        return None
+    agreeing = joint.agreeing_masks(np.array([s.T for s in solved]), keypoints, candidates.matches)
+    ranked = sorted(
+        (_with_point_inliers(s, mask) for s, mask in zip(solved, agreeing, strict=True)),
+        key=lambda pair: -pair[0].score,
+    )
+    best, best_points = ranked[0]
+    planes = best.constraints.terms["planes"]
+    enough = best.point_inliers >= cfg.relocalise_min_points or (
+        planes >= cfg.relocalise_min_planes
+        and planes >= cfg.relocalise_min_plane_fraction * len(frame.plane_ids)
+    )
+    if not enough:
+        logger.debug(
+            "relocalisation: best candidate has too little support (%s)", best.constraints.terms
+        )
+        return None
+    for rival, rival_points in ranked[1:]:
+        if is_rival(best, rival, best_points, rival_points, cfg):
+            logger.debug("relocalisation ambiguous: scores %.1f and %.1f", best.score, rival.score)
+            return None
+    return best
+
+
+def _with_point_inliers(solve: JointSolve, agreeing: np.ndarray) -> tuple[JointSolve, np.ndarray]:
+    """`solve` with its point term counting the matches `agreeing` ((M,) bool: within their
+    inlier threshold at its pose), and that mask. The estimate's own point gate is wide (a
+    keyframe's pose error is shared by its points), so refined poses a few cm apart would
+    look equally supported."""
+    terms = {**solve.constraints.terms, "points": int(np.count_nonzero(agreeing))}
+    return replace(solve, constraints=replace(solve.constraints, terms=terms)), agreeing
+
+
+def is_rival(
+    best: JointSolve,
+    other: JointSolve,
+    best_points: np.ndarray,
+    other_points: np.ndarray,
+    cfg: TrackingConfig,
+) -> bool:
+    """Whether `other` makes a relocalisation to `best` ambiguous: it scores at least
+    `relocalise_ambiguity` of the best, lies elsewhere (beyond 10 cm or 5 deg) and is not the
+    same place fitted worse, which explains the same point matches (the (M,) bool masks of
+    the matches agreeing with each: half of the other's, and at least `points.min_inliers`,
+    are the best's too). A symmetric room's other corners match other keypoints, or none."""
+    if other.score < cfg.relocalise_ambiguity * best.score or _same_pose(other.T, best.T):
+        return False
+    shared = np.count_nonzero(other_points & best_points)
+    return bool(shared < max(cfg.points.min_inliers, 0.5 * np.count_nonzero(other_points)))
+
+
+def _same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """Whether two (4, 4) poses are within 10 cm and 5 deg of each other."""
+    meters, degrees = hypotheses.pose_difference(T_a, T_b)
+    return meters <= 0.10 and degrees <= 5.0
