@@ -12,7 +12,7 @@ from planeslam.app.bench import bench_frontend, open3d_planes, pinned_to_cores
 from planeslam.core.camera import CameraConfig, PixelRays
 from planeslam.core.errors import ConfigError
 from planeslam.frontend import pipeline as frontend
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
 
 SMALL = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 

@@ -11,7 +11,8 @@ from conftest import shared_sequence
 from planeslam.app.calibrate import calibrate_sequence
 from planeslam.config import load_config, resolve_config
 from planeslam.frontend.calibration import fit_depth_noise, inverse_depth_step
-from planeslam.sim.render import KinectNoise, render_frame
+from planeslam.sim.noise import KinectNoise
+from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import box_room_circle
 
 

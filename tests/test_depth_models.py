@@ -18,18 +18,8 @@ from planeslam.core.config import from_mapping
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import invert_pose
 from planeslam.eval.suite import SequenceSpec, load_suite, sequence_root
-from planeslam.sim.render import (
-    NOISE_MODELS,
-    DisparityNoise,
-    KinectNoise,
-    SynthOptions,
-    camera_with_hfov,
-    load_truth,
-    noise_model_of,
-    render_frame,
-    render_sequence,
-    synthesize,
-)
+from planeslam.sim.noise import NOISE_MODELS, DisparityNoise, KinectNoise, noise_model_of
+from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import (
     Box,
     Scene,
@@ -38,6 +28,13 @@ from planeslam.sim.scenes import (
     get_scene,
     look_at,
     make_scene,
+)
+from planeslam.sim.sequence import (
+    SynthOptions,
+    camera_with_hfov,
+    load_truth,
+    render_sequence,
+    synthesize,
 )
 
 HALF = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)

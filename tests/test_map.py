@@ -708,7 +708,7 @@ def test_true_pose_merge_of_box_room_circle_sizes_box_and_room(tmp_path):
     from planeslam.frontend.pipeline import FrontEnd
     from planeslam.io.dataset import TumDataset
     from planeslam.io.trajectory import read_tum
-    from planeslam.sim.render import load_truth, synthesize
+    from planeslam.sim.sequence import load_truth, synthesize
     from planeslam.tracking.association import associate_with_corners
 
     root = Path(tmp_path) / "brc"

@@ -14,7 +14,7 @@ from planeslam.eval.relocalisation import (
     keyframe_trajectory,
     relocalisation_benchmark,
 )
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
 
 
 def test_report_counts_against_truth_and_the_map_run() -> None:

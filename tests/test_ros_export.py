@@ -13,7 +13,7 @@ from planeslam.app.runner import run_sequence
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import pose_from_quat
 from planeslam.io.trajectory import read_tum
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
 
 
 def read_bag(path: Path) -> dict[str, list]:

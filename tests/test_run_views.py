@@ -25,7 +25,7 @@ from planeslam.eval.run_info import read_run_info
 from planeslam.mapping.dense_mesh import TsdfConfig
 from planeslam.mapping.ply_export import _palette
 from planeslam.mapping.world_map import Map
-from planeslam.sim.render import load_truth, synthesize
+from planeslam.sim.sequence import load_truth, synthesize
 
 CHROMIUM = Path("/usr/bin/chromium")
 FRAMES = 8

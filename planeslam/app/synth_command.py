@@ -21,7 +21,8 @@ def _range(text: str) -> tuple[float, float]:
 def add_synth_command(sub: argparse._SubParsersAction) -> None:
     """The `synth` sub-command."""
     from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
-    from planeslam.sim.render import NOISE_MODELS, SCENES
+    from planeslam.sim.noise import NOISE_MODELS
+    from planeslam.sim.scenes import SCENES
 
     p = _command(
         sub,
@@ -93,8 +94,8 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from planeslam.app.run_folder import check_empty_folder
-    from planeslam.sim.render import SynthOptions, render_sequence
     from planeslam.sim.scenes import SceneOptions, Texture
+    from planeslam.sim.sequence import SynthOptions, render_sequence
 
     check_empty_folder(args.outdir, args.overwrite)
 
