@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from planeslam.app.subcommand import add_command
 from planeslam.config import (
     BASIC_KEYS,
     ConfigLayer,
@@ -60,11 +61,12 @@ def camera_option(args: argparse.Namespace) -> ConfigLayer | None:
 
 
 def add_config_command(sub: argparse._SubParsersAction) -> None:
-    from planeslam.app.cli import _command
 
-    p = _command(sub, "config", help="show the resolved configuration and where each value is from")
+    p = add_command(
+        sub, "config", help="show the resolved configuration and where each value is from"
+    )
     config = p.add_subparsers(dest="config_command", metavar="ACTION", required=True)
-    s = _command(
+    s = add_command(
         config,
         "show",
         help="print the resolved config, each key with its source",
@@ -92,7 +94,7 @@ def add_config_command(sub: argparse._SubParsersAction) -> None:
     add_camera_option(s)
     add_override_option(s)
     s.set_defaults(func=_cmd_config_show)
-    d = _command(
+    d = add_command(
         config,
         "docs",
         help="the configuration reference (every key, its values, default and meaning)",

@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from planeslam.app.arg_types import SEED, number, whole
+from planeslam.app.subcommand import add_command
 from planeslam.core.errors import ConfigError
 
 
@@ -20,11 +21,10 @@ def _range(text: str) -> tuple[float, float]:
 
 def add_synth_command(sub: argparse._SubParsersAction) -> None:
     """The `synth` sub-command."""
-    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
     from planeslam.sim.noise import NOISE_MODELS
     from planeslam.sim.scenes import SCENES
 
-    p = _command(
+    p = add_command(
         sub,
         "synth",
         help="render a synthetic RGB-D sequence with exact truth",
