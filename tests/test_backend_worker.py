@@ -27,6 +27,8 @@ from planeslam.io.dataset import TumDataset
 from planeslam.sim.sequence import synthesize
 from planeslam.slam import SLAM, run_frames
 
+pytestmark = pytest.mark.integration  # the backend in a worker process
+
 
 @pytest.fixture(scope="module")
 def loop(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -14,6 +14,8 @@ from planeslam.core.errors import ConfigError
 from planeslam.frontend import pipeline as frontend
 from planeslam.sim.sequence import synthesize
 
+pytestmark = pytest.mark.integration  # `planeslam bench`: front end over rendered sequences
+
 SMALL = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 
 

@@ -15,7 +15,10 @@ from planeslam.sim.noise import KinectNoise
 from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import box_room_circle
 
+pytestmark = pytest.mark.unit
 
+
+@pytest.mark.integration
 @pytest.mark.parametrize(
     "model",
     [KinectNoise(), KinectNoise(sigma_const_m=0.0024, sigma_quad_m=0.0038)],

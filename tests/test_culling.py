@@ -17,6 +17,8 @@ from planeslam.mapping.culling import cull_single_view
 from planeslam.mapping.records import MapCorner
 from planeslam.slam import map_config_for
 
+pytestmark = pytest.mark.unit
+
 
 def test_single_view_planes_leave_after_the_given_frames_with_their_edges_and_corners():
     floor = replace(patch(0, [0, 0, 0], [1, 0, 0], [0, 1, 0], 2), seen_in=frozenset({0, 5}))

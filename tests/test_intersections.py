@@ -22,6 +22,8 @@ from planeslam.frontend.types import Plane, Segmentation
 from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import SCENES, Box, Panel, Structure, look_at, make_scene
 
+pytestmark = pytest.mark.unit
+
 CAMERA = CameraConfig()
 
 

@@ -14,6 +14,8 @@ from planeslam.config import load_config
 from planeslam.io.trajectory import read_tum
 from planeslam.sim.sequence import synthesize
 
+pytestmark = pytest.mark.integration  # `planeslam run` twice: the saved config repeats the run
+
 
 @pytest.fixture(scope="module")
 def box_room(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -22,6 +22,8 @@ from planeslam.mapping.config import MapConfig
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
 
+pytestmark = pytest.mark.unit
+
 WALL_U, WALL_V = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
 
 

@@ -23,6 +23,8 @@ from planeslam.mapping.world_map import Map
 from planeslam.sim.sequence import synthesize
 from planeslam.slam import SLAM, FrameResult, run_frames
 
+pytestmark = pytest.mark.integration  # full SLAM runs, `planeslam run`
+
 
 @pytest.fixture(scope="module")
 def box_room(tmp_path_factory: pytest.TempPathFactory) -> Path:

@@ -19,6 +19,8 @@ from planeslam.sim.render import plane_in_camera, render_frame
 from planeslam.sim.scenes import SCENES, get_scene, look_at, make_scene
 from planeslam.sim.sequence import TRUTH_SCHEMA, load_truth, synthesize
 
+pytestmark = pytest.mark.unit
+
 SMALL = CameraConfig(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120)
 HALF = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 

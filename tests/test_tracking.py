@@ -26,6 +26,8 @@ from planeslam.tracking.tracker import (
     is_rival,
 )
 
+pytestmark = pytest.mark.unit
+
 # A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
 # visible corner is at (1.0, 0.8, 0.2); every normal faces the camera side (+x, +y, +z),
 # world frame, metres.

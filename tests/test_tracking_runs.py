@@ -27,6 +27,8 @@ from planeslam.sim.sequence import synthesize
 from planeslam.slam import SLAM, run_frames
 from planeslam.tracking.segments import Segment
 
+pytestmark = pytest.mark.integration  # tracking on rendered and real sequences, whole runs
+
 
 def pose_errors(estimated: np.ndarray, truth: np.ndarray) -> np.ndarray:
     """(N,) translation errors [m] of (N, 4, 4) poses against (N, 4, 4) truth (no alignment:
