@@ -59,6 +59,7 @@ def test_cull_setting_is_checked():
         MapConfig(merge_segments=1)  # type: ignore[arg-type]
 
 
+@pytest.mark.integration  # starts the iSAM2 worker process
 def test_the_backend_chooses_culling_and_segment_merge_unless_the_config_does():
     """null (the default): iSAM2 culls after 5 keyframes and merges segments; the paper's
     merge backend, which merges every frame and never revises a pose, does neither."""

@@ -131,6 +131,7 @@ def test_msac_matches_truth(scene_name, frame):
     _check_plane_fields(seg)
 
 
+@pytest.mark.slow  # two MSAC runs on a full frame
 def test_msac_is_reproducible_with_a_seed():
     _, _, rendered = _render("box_room_circle", 13, seed=5)
     a = segment_planes(rendered.depth_m, RAYS, MSAC, rng=np.random.default_rng(7))
@@ -326,7 +327,11 @@ def test_bad_camera_argument_and_config():
 
 
 @pytest.mark.parametrize(
-    ("method", "kind"), [("organized", OrganizedSegmenter), ("msac", MsacSegmenter)]
+    ("method", "kind"),
+    [
+        ("organized", OrganizedSegmenter),
+        pytest.param("msac", MsacSegmenter, marks=pytest.mark.slow),  # MSAC: seconds a frame
+    ],
 )
 def test_factory_picks_the_method_and_entry_points_agree(method, kind):
     """`make_segmenter` gives a `Segmenter` of the configured method, and
