@@ -28,9 +28,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-# The unit tests without the slow ones (< 20 s); `make test` runs everything.
+# The unit tests (each test module sets its tier with `pytestmark`; a test of a unit module
+# that crosses stages is marked integration itself), without the slow ones and those on the
+# real data (< 20 s); `make test` runs everything.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -m "unit and not slow"
+	$(BIN)/python -m pytest -q -m "unit and not integration and not slow and not data"
 
 lint: $(STAMP)
 	$(BIN)/ruff check planeslam factors eval tests examples

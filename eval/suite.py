@@ -28,7 +28,7 @@ from planeslam.core.errors import ConfigError, DatasetFormatError, EvaluationErr
 from planeslam.core.safe_files import atomic_output
 from planeslam.io.sequence import RgbdDataset, open_dataset
 from planeslam.io.trajectory import Trajectory, write_tum
-from planeslam.sim.render import SynthOptions
+from planeslam.sim.sequence import SynthOptions
 
 from .executors import Job, run_here, run_in_processes, run_on_dask
 from .metrics import RunMetrics, run_metrics, slam_run_metrics, write_metrics
@@ -230,7 +230,7 @@ def sequence_root(spec: SequenceSpec, base_dir: str | Path, out_dir: str | Path 
 def render_scenes(config: SuiteConfig, out_dir: str | Path) -> None:
     """Render the synthetic scenes of a suite into out_dir/data once (seed 0), before the
     workers start, so that no two workers render the same scene."""
-    from planeslam.sim.render import render_sequence
+    from planeslam.sim.sequence import render_sequence
 
     for spec in config.sequences:
         if spec.scene is not None:

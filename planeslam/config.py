@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -46,6 +46,7 @@ if TYPE_CHECKING:
     from planeslam.io.sequence import RgbdDataset
 
 __all__ = [
+    "BASIC_KEYS",
     "PRESETS",
     "ConfigLayer",
     "PlaneSlamConfig",
@@ -53,6 +54,7 @@ __all__ = [
     "RunConfig",
     "camera_layer",
     "config_layers",
+    "configuration_markdown",
     "explain_config",
     "from_mapping",
     "guess_preset",
@@ -67,6 +69,48 @@ __all__ = [
 
 PRESETS = ("defaults", "tum_fr1", "tum_fr2", "tum_fr3", "sevenscenes", "synthetic")
 
+BASIC_KEYS: tuple[str, ...] = (
+    # the camera: intrinsics and depth encoding
+    "camera.fx",
+    "camera.fy",
+    "camera.cx",
+    "camera.cy",
+    "camera.width",
+    "camera.height",
+    "camera.depth_scale",
+    "camera.invalid_depth",
+    "camera.distortion",
+    # the sensor's depth noise (planeslam calibrate fits it)
+    "sensor.sigma_a_m",
+    "sensor.sigma_b_per_m",
+    # reading frames: folders and ROS bags
+    "dataset.max_time_difference_s",
+    "dataset.undistort",
+    "dataset.bag.rgb_topic",
+    "dataset.bag.depth_topic",
+    "dataset.bag.camera_info_topic",
+    "dataset.bag.intrinsics",
+    "dataset.bag.groundtruth",
+    # frame selection and the run
+    "run.backend",
+    "run.seed",
+    "run.every",
+    "run.max_frames",
+    "run.start_pose",
+    # the backend's main budget
+    "backend.window_keyframes",
+    "backend.final_iterations",
+    "backend.separate_process",
+    "backend.keyframe_max_frames",
+    # what the front end looks at, and how densely
+    "segmentation.method",
+    "segmentation.max_depth_m",
+    "segmentation.organized.pixel_stride",
+)
+"""The keys a user may need: `planeslam config show` prints these, `--advanced` every key,
+and docs/configuration.md lists them first. Every other key stays valid in YAML files and
+`--set`; this list only decides what is shown first."""
+
 
 @dataclass(frozen=True)
 class RunConfig:
@@ -78,9 +122,9 @@ class RunConfig:
     seed: int = 0
     """Seed of the front end's random generator (the MSAC segmenter's samples)."""
     every: int = 1
-    """A dataset run takes every n-th frame."""
+    """A dataset run takes every n-th frame (>= 1)."""
     max_frames: int | None = None
-    """A dataset run takes at most this many frames (None: all)."""
+    """A dataset run takes at most this many frames (>= 1; null: all)."""
     start_pose: Literal["groundtruth", "identity"] = "groundtruth"
     """Pose of the first frame, which fixes the world frame of the trajectory and map.
     'groundtruth': the ground-truth pose of the first frame when it is known (a dataset
@@ -176,14 +220,17 @@ class ResolvedConfig:
     layers: tuple[str, ...]
     """The layers applied over the defaults, in order (later ones win), in full."""
 
-    def to_yaml(self) -> str:
+    def to_yaml(self, keys: Collection[str] | None = None) -> str:
         """The config as YAML with the source of every key as a comment after it; it loads
-        back (`load_config`) as the same config."""
+        back (`load_config`) as the same config. `keys` (dotted): only those (e.g.
+        `BASIC_KEYS`), the others left at what the layers make them."""
         applied = "".join(f"#   {layer}\n" for layer in self.layers) or "#   (none)\n"
+        shown = "" if keys is None else f"# {len(keys)} of {len(self.sources)} keys shown\n"
         return (
             "# planeslam config: the defaults overlaid by these layers (later ones win):\n"
             + applied
-            + format_with_sources(self.config, self.sources)
+            + shown
+            + format_with_sources(self.config, self.sources, keys=keys)
         )
 
     def replaced(self, config: PlaneSlamConfig, label: str) -> ResolvedConfig:
@@ -318,6 +365,29 @@ def resolve_config(
     the folder name), then the `config` file, the folder's `camera.yaml` when present, the
     camera override and the key overrides, each overlaid key by key."""
     return explain_config(dataset_dir, config, camera, overrides).config
+
+
+CONFIGURATION_HEADER = """\
+Every key of a run's configuration, with the values it takes, its default and its meaning
+(units in the name or in brackets). A config is built from layers, each overlaid key by
+key: the defaults below; a preset (`--config tum_fr1`, or a file's `base: tum_fr1`, or the
+one guessed from the dataset folder's name); the `--config` file; the dataset's
+`camera.yaml`; `--camera fx,fy,cx,cy[,depth_scale]`; `--set SECTION.KEY=VALUE` (the value in
+YAML syntax); for `planeslam run`, its flags (`--backend`, `--every`, `--max-frames`,
+`--seed`, `--start-pose`). An unknown key is an error that lists the valid ones.
+
+The basic keys are the ones a user may need; `planeslam config show` prints them with
+their values and where each came from, `planeslam config show --advanced` every key. The
+advanced keys are tuned on the robustness benchmark's tuning set (docs/benchmarks.md);
+change them to experiment."""
+
+
+def configuration_markdown(command: str = "planeslam config docs --markdown FILE") -> str:
+    """docs/configuration.md: every key of `PlaneSlamConfig` from its docstring, the
+    `BASIC_KEYS` first (`planeslam.core.config_docs`)."""
+    from planeslam.core.config_docs import reference_markdown
+
+    return reference_markdown(PlaneSlamConfig, BASIC_KEYS, CONFIGURATION_HEADER, command)
 
 
 def open_configured(

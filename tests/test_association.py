@@ -17,6 +17,8 @@ from planeslam.tracking.association import (
     plane_association_cost,
 )
 
+pytestmark = pytest.mark.unit
+
 DEG = np.pi / 180
 
 

@@ -33,6 +33,8 @@ from planeslam.core.types import LoopConstraint, PlaneMeasurement  # noqa: E402
 from planeslam.factors import LandmarkConfig, LandmarkKeys, point_on_plane_factor  # noqa: E402
 from planeslam.sim.scenes import box_room_circle, room_boxes_loop  # noqa: E402
 
+pytestmark = pytest.mark.unit
+
 ODOM_SIGMAS = (0.003, 0.005)  # rad, m per keyframe
 
 
@@ -97,6 +99,7 @@ def backend_config(**landmarks) -> BackendConfig:
     )
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("robust_kernel", [None, "huber"])
 def test_isam2_beats_odometry_below_1cm(room_loop, robust_kernel):
     scene, T_true, odometry, observations = room_loop
@@ -463,6 +466,7 @@ def test_custom_key_characters():
     assert chars == {"k", "m", "n"}
 
 
+@pytest.mark.integration
 def test_real_front_end_observations_on_rendered_frames():
     """The real FrontEnd on rendered depth (Kinect noise) -> associate -> add_keyframe."""
     from planeslam.config import load_config

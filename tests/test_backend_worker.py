@@ -24,8 +24,10 @@ from planeslam.factors.landmarks import PlaneLandmarks
 from planeslam.factors.recovery import new_isam2
 from planeslam.frontend.pipeline import FrontEnd
 from planeslam.io.dataset import TumDataset
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
 from planeslam.slam import SLAM, run_frames
+
+pytestmark = pytest.mark.integration  # the backend in a worker process
 
 
 @pytest.fixture(scope="module")

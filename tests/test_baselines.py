@@ -29,6 +29,8 @@ from planeslam.io.dataset import Frame, TumDataset
 from planeslam.io.trajectory import Trajectory
 from planeslam.tracking.odometry import registration_ok
 
+pytestmark = pytest.mark.integration  # open3d odometry on real data, the baseline suite in workers
+
 
 @dataclass
 class BlankDataset:

@@ -12,7 +12,9 @@ from planeslam.app.bench import bench_frontend, open3d_planes, pinned_to_cores
 from planeslam.core.camera import CameraConfig, PixelRays
 from planeslam.core.errors import ConfigError
 from planeslam.frontend import pipeline as frontend
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
+
+pytestmark = pytest.mark.integration  # `planeslam bench`: front end over rendered sequences
 
 SMALL = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 

@@ -11,7 +11,7 @@ from planeslam.app import bench_speed as speed
 from planeslam.app.cli import main
 from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import ConfigError
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
 
 SMALL = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 # Whole SLAM runs with the backend worker process: integration, as test_bench.py.

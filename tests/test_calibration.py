@@ -11,10 +11,14 @@ from conftest import shared_sequence
 from planeslam.app.calibrate import calibrate_sequence
 from planeslam.config import load_config, resolve_config
 from planeslam.frontend.calibration import fit_depth_noise, inverse_depth_step
-from planeslam.sim.render import KinectNoise, render_frame
+from planeslam.sim.noise import KinectNoise
+from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import box_room_circle
 
+pytestmark = pytest.mark.unit
 
+
+@pytest.mark.integration
 @pytest.mark.parametrize(
     "model",
     [KinectNoise(), KinectNoise(sigma_const_m=0.0024, sigma_quad_m=0.0038)],

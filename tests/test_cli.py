@@ -11,6 +11,8 @@ import pytest
 
 from planeslam.app.cli import main
 
+pytestmark = pytest.mark.integration  # the CLI, in subprocesses, demo included
+
 COMMANDS = ("synth", "demo", "eval", "run", "frame", "bench", "view", "mesh", "calibrate")
 
 

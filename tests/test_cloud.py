@@ -9,6 +9,8 @@ from planeslam.core.camera import CameraConfig, PixelRays
 from planeslam.core.errors import GeometryError
 from planeslam.frontend.cloud import organized_cloud, valid_mask
 
+pytestmark = pytest.mark.unit
+
 CAMERA = CameraConfig(fx=500.0, fy=480.0, cx=31.5, cy=23.5, width=64, height=48)
 
 

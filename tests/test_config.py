@@ -11,6 +11,8 @@ from planeslam.core.camera import CameraConfig
 from planeslam.core.config import save_yaml
 from planeslam.core.errors import ConfigError
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.mark.parametrize("preset", PRESETS)
 def test_every_preset_loads(preset: str) -> None:

@@ -21,6 +21,8 @@ from planeslam.core.errors import ConfigError
 from planeslam.io.trajectory import Trajectory
 from planeslam.slam import SLAM, slam_for_dataset
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture
 def fr1_folder(tmp_path: Path) -> Path:

@@ -17,6 +17,8 @@ from planeslam.mapping.culling import cull_single_view
 from planeslam.mapping.records import MapCorner
 from planeslam.slam import map_config_for
 
+pytestmark = pytest.mark.unit
+
 
 def test_single_view_planes_leave_after_the_given_frames_with_their_edges_and_corners():
     floor = replace(patch(0, [0, 0, 0], [1, 0, 0], [0, 1, 0], 2), seen_in=frozenset({0, 5}))
@@ -57,6 +59,7 @@ def test_cull_setting_is_checked():
         MapConfig(merge_segments=1)  # type: ignore[arg-type]
 
 
+@pytest.mark.integration  # starts the iSAM2 worker process
 def test_the_backend_chooses_culling_and_segment_merge_unless_the_config_does():
     """null (the default): iSAM2 culls after 5 keyframes and merges segments; the paper's
     merge backend, which merges every frame and never revises a pose, does neither."""

@@ -15,6 +15,8 @@ from planeslam.io.config import DatasetConfig
 from planeslam.io.dataset import TumDataset, associate_timestamps
 from tests.conftest import shared_sequence
 
+pytestmark = pytest.mark.unit
+
 # (folder, frames, median valid depth range [m] per frame, from each SOURCE.md)
 REAL = [
     ("7scenes_redkitchen_1000f", 1000, (1.18, 2.47)),

@@ -18,18 +18,8 @@ from planeslam.core.config import from_mapping
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import invert_pose
 from planeslam.eval.suite import SequenceSpec, load_suite, sequence_root
-from planeslam.sim.render import (
-    NOISE_MODELS,
-    DisparityNoise,
-    KinectNoise,
-    SynthOptions,
-    camera_with_hfov,
-    load_truth,
-    noise_model_of,
-    render_frame,
-    render_sequence,
-    synthesize,
-)
+from planeslam.sim.noise import NOISE_MODELS, DisparityNoise, KinectNoise, noise_model_of
+from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import (
     Box,
     Scene,
@@ -39,6 +29,15 @@ from planeslam.sim.scenes import (
     look_at,
     make_scene,
 )
+from planeslam.sim.sequence import (
+    SynthOptions,
+    camera_with_hfov,
+    load_truth,
+    render_sequence,
+    synthesize,
+)
+
+pytestmark = pytest.mark.unit
 
 HALF = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 MODEL = DisparityNoise()
@@ -442,6 +441,7 @@ def test_default_suite_has_the_independent_rendering() -> None:
     assert SequenceSpec(scene="box_room_circle", synth=INDEPENDENT).name in [s.name for s in box]
 
 
+@pytest.mark.integration
 def test_synth_command_writes_the_rendering_it_was_asked_for(tmp_path: Path) -> None:
     from planeslam.app.cli import main
 
@@ -493,6 +493,7 @@ THREE_FACE_FRAMES = (2, 3, 8, 9, 14, 15, 20, 21)
 """box_room_circle frames showing the box top and two sides (as in test_frontend.py)."""
 
 
+@pytest.mark.integration
 def test_front_end_finds_box_and_room_in_disparity_frames() -> None:
     """Per frame, with the disparity model: the box in every three-face frame, sized
     within 1.5 cm each (measured over 10 seeds: 78 of 80 frames within 7.5 mm, the worst
@@ -547,6 +548,7 @@ def _slam_on(root: Path):
     return summary, ate, by_class
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_slam_on_the_disparity_rendering(tmp_path: Path) -> None:
     """box_room_circle with the disparity model and the scene's own camera: every frame
@@ -559,6 +561,7 @@ def test_slam_on_the_disparity_rendering(tmp_path: Path) -> None:
     assert sizes["box"].max() < 0.006 and sizes["room"].max() < 0.006
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_slam_on_the_independent_rendering_reaches_the_issue_target(tmp_path: Path) -> None:
     """The issue's target on the independent rendering: all 24 poses tracked, box sizes

@@ -24,6 +24,8 @@ from planeslam.core.errors import DatasetFormatError, DownloadError
 from planeslam.io.sequence import open_dataset
 from planeslam.io.tum_download import TUM_SEQUENCES, download_tum, tum_sequence
 
+pytestmark = pytest.mark.unit
+
 FOLDER = "rgbd_dataset_freiburg1_xyz"
 ARCHIVE_PATH = f"/freiburg1/{FOLDER}.tgz"
 

@@ -37,6 +37,8 @@ from planeslam.eval.trajectory_metrics import (
 )
 from planeslam.io.trajectory import Trajectory, write_tum
 
+pytestmark = pytest.mark.unit
+
 BIN = Path(sys.executable).parent
 RATE_HZ = 30.0
 T0 = 1305031102.0
@@ -97,6 +99,7 @@ def run_evo(tool: str, gt: Path, est: Path, out_zip: Path, *extra: str) -> dict:
     return {"stats": result.stats, "arrays": result.np_arrays}
 
 
+@pytest.mark.integration
 def test_ate_equals_evo_ape_cli(tum_pair: tuple[Path, Path], tmp_path: Path) -> None:
     gt, est = tum_pair
     ours = evaluate_trajectory(gt, est)
@@ -111,6 +114,7 @@ def test_ate_equals_evo_ape_cli(tum_pair: tuple[Path, Path], tmp_path: Path) -> 
     assert 0.012 < ours.ate_rmse_m < 0.022
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("relation", "field"),
     [("trans_part", "rpe_trans_m_per_s"), ("angle_deg", "rpe_rot_deg_per_s")],
@@ -227,6 +231,7 @@ def test_view_axes_pick_largest_extents() -> None:
     assert view_axes(z_up_world) == ((0, 1), (1, 2))
 
 
+@pytest.mark.integration
 def test_write_evaluation_and_report(tum_pair: tuple[Path, Path], tmp_path: Path) -> None:
     out = tmp_path / "out"
     ev = evaluate_trajectory(*tum_pair)
@@ -340,6 +345,7 @@ def test_object_size_errors_from_files(tmp_path: Path) -> None:
         object_size_errors([], {"planes": []})
 
 
+@pytest.mark.integration
 def test_evaluate_to_folder_adds_object_sizes(tum_pair: tuple[Path, Path], tmp_path: Path) -> None:
     gt, est = tum_pair  # both in tmp_path
     (tmp_path / "truth.json").write_text(json.dumps(TRUTH))

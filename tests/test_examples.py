@@ -11,7 +11,10 @@ from pathlib import Path
 import pytest
 from conftest import shared_sequence
 
-EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
+pytestmark = pytest.mark.integration  # the examples run as scripts: render, front end, SLAM
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
 PUBLIC = re.compile(r"planeslam(\.sim\.(scenes|render))?$")
 """What an example may import of planeslam: the top-level names, and the synthetic scenes
 standing in for a camera."""
@@ -34,13 +37,45 @@ def figure(pattern: str, text: str) -> float:
     return float(match.group(1))
 
 
-@pytest.mark.parametrize("name", ["own_graph.py", "frame_by_frame.py"])
+QUICKSTARTS = ["slam_quickstart.py", "landmarks_quickstart.py"]
+
+
+@pytest.mark.parametrize("name", ["own_graph.py", "frame_by_frame.py", *QUICKSTARTS])
 def test_examples_use_only_the_public_api(name: str) -> None:
     tree = ast.parse((EXAMPLES / name).read_text(encoding="utf-8"))
     modules = [n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
     modules += [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
     inner = [m for m in modules if m and m.startswith("planeslam") and not PUBLIC.match(m)]
     assert not inner, f"{name} reaches into {inner}: export what it needs from planeslam"
+
+
+def test_readme_python_blocks_are_quoted_from_the_quickstart_examples() -> None:
+    """Every ```python block of the README is a run of lines of one of the quickstart
+    examples (which the next tests run), so the README's code runs as shown."""
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    blocks = re.findall(r"```python\n(.*?)```", readme, re.DOTALL)
+    assert len(blocks) >= 3, "the README should show the two API examples"
+    sources = [(EXAMPLES / name).read_text(encoding="utf-8") for name in QUICKSTARTS]
+    stale = [block for block in blocks if not any(block in source for source in sources)]
+    assert not stale, f"README blocks not found verbatim in {QUICKSTARTS}:\n{stale}"
+
+
+def test_slam_quickstart_example() -> None:
+    out = run_example("slam_quickstart.py")
+    assert figure(r"24 poses, RMSE ([\d.]+) m", out) < 0.01, out
+    box = re.search(r"^box ([\d.]+) x ([\d.]+) x ([\d.]+) m", out, re.MULTILINE)
+    assert box, out
+    sizes = [float(v) for v in box.groups()]
+    assert max(abs(a - b) for a, b in zip(sizes, (0.38, 0.29, 0.19), strict=True)) < 0.01, out
+
+
+def test_landmarks_quickstart_example() -> None:
+    out = run_example("landmarks_quickstart.py")
+    assert figure(r"(\d+) plane and \d+ corner landmarks", out) >= 6, out
+    box = re.search(r"^box ([\d.]+) x ([\d.]+) x ([\d.]+) m", out, re.MULTILINE)
+    assert box, out
+    sizes = [float(v) for v in box.groups()]
+    assert max(abs(a - b) for a, b in zip(sizes, (0.38, 0.29, 0.19), strict=True)) < 0.01, out
 
 
 def test_own_graph_example() -> None:

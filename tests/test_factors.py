@@ -23,6 +23,8 @@ from planeslam.factors import (
     structural_factor,
 )
 
+pytestmark = pytest.mark.unit
+
 KEYS = LandmarkKeys()
 X0, P0, P1, C0 = KEYS.pose(0), KEYS.plane(0), KEYS.plane(1), KEYS.corner(0)
 SEEDS = range(8)

@@ -29,6 +29,8 @@ from tests.corpus.cases import (
     synth_sequence,
 )
 
+pytestmark = pytest.mark.integration  # the fault corpus through the CLI: signals, kills, full disks
+
 FRAMES = 14
 
 

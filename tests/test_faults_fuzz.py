@@ -19,6 +19,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
+import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -34,6 +35,8 @@ from planeslam.io.trajectory import read_tum
 from planeslam.mapping.world_map import Map
 from tests.corpus.cases import SMALL_CAMERA, one_line
 from tests.corpus.tally import Outcome, record
+
+pytestmark = pytest.mark.unit
 
 settings.register_profile(
     "suite",

@@ -29,6 +29,8 @@ from tests.corpus.cases import (
     write_png,
 )
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def pristine(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -323,6 +325,7 @@ def test_process_rejects_timestamps_out_of_order(frames) -> None:
     _process_raises(frames, "text timestamp", r"timestamp 'now' is not a number", stamp="now")
 
 
+@pytest.mark.integration
 def test_nan_and_inf_depth_are_invalid_pixels(frames) -> None:
     cfg, fs = frames
 
@@ -356,6 +359,7 @@ def _parallel_planes_only(cfg, frame) -> np.ndarray:
     return np.where(np.isin(seg.labels, parallel), frame.depth_m, 0).astype(np.float32)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("backend", ["merge", "isam2"])
 def test_frames_without_depth_or_planes_are_lost_with_a_reason(frames, backend: str) -> None:
     cfg, fs = frames
@@ -404,6 +408,7 @@ def test_a_sequence_without_depth_from_its_first_frame_is_lost_not_tracked(frame
     expect_handled("sequence with no valid depth from the first frame", all_lost)
 
 
+@pytest.mark.integration
 def test_a_parallel_planes_frame_after_tracked_ones_is_lost_not_slid(frames) -> None:
     """Frame 2 with depth only on parallel planes, after two tracked frames: RGB-D odometry
     from the prediction found no pose near the truth (143 cm off a 140 cm motion) and the

@@ -31,6 +31,8 @@ from tests.corpus.cases import (
     umask,
 )
 
+pytestmark = pytest.mark.integration  # the fault corpus on whole runs
+
 FRAMES = 12
 
 

@@ -45,6 +45,8 @@ from tests.corpus.cases import (
 )
 from tests.corpus.tally import Outcome, record
 
+pytestmark = pytest.mark.unit
+
 PLANTED = ("gtsam", "numpy", "scipy", "cv2", "open3d", "yaml")
 """Modules the run or its worker imports: a file of each name is planted."""
 PLANETSLAM_BIN = Path(sys.executable).parent / "planeslam"
@@ -66,6 +68,7 @@ def planeslam_cli(args: list[str], cwd: Path, timeout: float = 300) -> subproces
 # ------------------------------------------------------------------ code from the working dir
 
 
+@pytest.mark.integration
 def test_no_code_from_the_working_directory_or_the_dataset_runs(
     pristine: Path, tmp_path: Path
 ) -> None:
@@ -151,6 +154,7 @@ def test_writers_never_follow_a_planted_link(tmp_path: Path) -> None:
     assert victim.read_text() == "precious\n"
 
 
+@pytest.mark.integration
 def test_a_run_writes_inside_its_folder_and_reports_only_its_pictures(
     pristine: Path, tmp_path: Path
 ) -> None:
@@ -184,6 +188,7 @@ def test_a_run_writes_inside_its_folder_and_reports_only_its_pictures(
 # ------------------------------------------------------------------ one run per folder
 
 
+@pytest.mark.integration
 def test_a_live_run_holds_its_folder(pristine: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     with FolderLock(out):
@@ -196,6 +201,7 @@ def test_a_live_run_holds_its_folder(pristine: Path, tmp_path: Path) -> None:
         pass
 
 
+@pytest.mark.integration
 def test_a_new_run_moves_the_previous_one_aside_after_checking_its_inputs(
     pristine: Path, tmp_path: Path
 ) -> None:
@@ -235,6 +241,7 @@ def test_claim_moves_only_run_files(tmp_path: Path) -> None:
         assert kept is None and (tmp_path / "groundtruth.txt").is_file()
 
 
+@pytest.mark.integration
 def test_synth_refuses_a_folder_in_use(tmp_path: Path) -> None:
     (tmp_path / "rgb.txt").write_text("# someone's list\n")
     result = planeslam_cli(["synth", "box_room_circle", str(tmp_path), "--frames", "2"], tmp_path)
@@ -449,6 +456,7 @@ def test_numeric_flags_are_range_checked(argv, flag, capsys) -> None:
     assert ok, err
 
 
+@pytest.mark.integration
 def test_rrd_naming_a_folder_and_a_dataset_link_loop(pristine: Path, tmp_path: Path) -> None:
     pytest.importorskip("rerun")
     (tmp_path / "loop").symlink_to(tmp_path / "loop")

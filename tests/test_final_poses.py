@@ -15,6 +15,8 @@ from planeslam.tracking.estimator import ConstraintThresholds, EstimatorSettings
 from planeslam.tracking.final_poses import FrameTerms, final_poses
 from planeslam.tracking.views import MapView
 
+pytestmark = pytest.mark.unit
+
 SETTINGS = EstimatorSettings(plane_sigma_angle_rad=np.radians(0.17), plane_sigma_offset_m=0.003)
 
 
@@ -106,6 +108,7 @@ def test_an_estimate_that_leaves_out_a_plane_the_anchored_pose_fits_is_not_taken
     assert found == {}
 
 
+@pytest.mark.integration
 @pytest.mark.data
 def test_frames_between_keyframes_follow_the_final_map_on_a_real_clip(tmp_path: Path) -> None:
     """TUM fr1/xyz (10 frames, 2-3 keyframes): the frames between keyframes carried by

@@ -22,6 +22,8 @@ from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, transform_points
 from planeslam.frontend.pipeline import STAGES, FrameObservation, FrontEnd
 
+pytestmark = pytest.mark.unit
+
 CONFIG = PlaneSlamConfig()
 assert CONFIG.camera == CameraConfig()  # the renders use the default 640 x 480 camera
 
@@ -46,6 +48,7 @@ def _scene_ids(obs: FrameObservation, frame) -> list[int]:
     return out
 
 
+@pytest.mark.integration
 def test_truth_frames_see_three_box_faces():
     """The frame list above agrees with the renderer's truth."""
     for k in range(24):
@@ -56,6 +59,7 @@ def test_truth_frames_see_three_box_faces():
         assert (sum(n >= 5000 for n in faces) >= 3) == (k in THREE_FACE_FRAMES), k
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("frame_index", "stride"), [(k, 2) for k in THREE_FACE_FRAMES[1::2]] + [(9, 1), (20, 1)]
 )
@@ -99,6 +103,7 @@ def test_box_and_room_with_the_real_segmenter(frame_index, stride):
         assert segment_error(e.segment, seg_cam) < 0.02, label
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_demo_figure_box_found_and_sized():
     """All 24 frames of the demo scene: the box is found, classed 'box' and sized

@@ -19,8 +19,10 @@ from planeslam.core.geometry import invert_pose, plane_line, transform_plane, tr
 from planeslam.frontend.config import IntersectionConfig
 from planeslam.frontend.intersections import candidate_pairs, find_intersections, intersection_lines
 from planeslam.frontend.types import Plane, Segmentation
-from planeslam.sim.render import SCENES, render_frame
-from planeslam.sim.scenes import Box, Panel, Structure, look_at, make_scene
+from planeslam.sim.render import render_frame
+from planeslam.sim.scenes import SCENES, Box, Panel, Structure, look_at, make_scene
+
+pytestmark = pytest.mark.unit
 
 CAMERA = CameraConfig()
 

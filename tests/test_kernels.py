@@ -10,6 +10,8 @@ from scipy.sparse.csgraph import connected_components
 
 from planeslam.frontend import kernels
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture
 def rng() -> np.random.Generator:

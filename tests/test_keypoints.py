@@ -23,6 +23,8 @@ from planeslam.tracking.keypoints import (
 )
 from planeslam.tracking.relocalise import relocalisation_candidates
 
+pytestmark = pytest.mark.unit
+
 CAMERA = CameraConfig()
 SENSOR = DepthNoiseConfig()
 

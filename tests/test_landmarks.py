@@ -24,6 +24,8 @@ from planeslam.core.types import (
 from planeslam.factors import LandmarkConfig, LandmarkKeys, PlaneLandmarks
 from planeslam.sim.scenes import Scene, box_room_circle
 
+pytestmark = pytest.mark.unit
+
 # ---------------------------------------------------------------- synthetic observations
 # FrameMeasurements of a scene seen from a pose, with the truth of which scene plane and
 # corner each observed one is.
@@ -393,6 +395,7 @@ def test_bad_input_is_rejected(circle):
         LandmarkConfig(corner_sigma_m=0.0)
 
 
+@pytest.mark.integration
 def test_keys_equal_gtsams_symbols_without_importing_gtsam():
     keys = LandmarkKeys(pose_char="x", plane_char="P", corner_char="C")
     for index in (0, 1, 12345, 2**56 - 1):

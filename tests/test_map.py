@@ -25,6 +25,8 @@ from planeslam.mapping.seating import hull_on_plane, seat_segments
 from planeslam.mapping.world_map import Map
 from planeslam.sim.scenes import get_scene
 
+pytestmark = pytest.mark.unit
+
 UP = np.array([0.0, 0.0, 1.0])
 
 
@@ -700,6 +702,7 @@ def test_memory_bytes_in_memory_hold_the_arrays_and_grow_with_the_content():
 # ----------------------------------------------------------------------------- the paper's run
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_true_pose_merge_of_box_room_circle_sizes_box_and_room(tmp_path):
     """The paper's experiment with the true poses (no tracking): 24 rendered frames
@@ -708,7 +711,7 @@ def test_true_pose_merge_of_box_room_circle_sizes_box_and_room(tmp_path):
     from planeslam.frontend.pipeline import FrontEnd
     from planeslam.io.dataset import TumDataset
     from planeslam.io.trajectory import read_tum
-    from planeslam.sim.render import load_truth, synthesize
+    from planeslam.sim.sequence import load_truth, synthesize
     from planeslam.tracking.association import associate_with_corners
 
     root = Path(tmp_path) / "brc"

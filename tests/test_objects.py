@@ -40,6 +40,8 @@ from planeslam.frontend.plane_graph import (
 )
 from planeslam.frontend.types import Plane, Segmentation
 
+pytestmark = pytest.mark.unit
+
 UP = np.array([0.0, -1.0, 0.0])
 
 

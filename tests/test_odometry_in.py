@@ -16,6 +16,8 @@ from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import compose_covariance, invert_pose, pose_adjoint
 from planeslam.core.types import RelativePose
 
+pytestmark = pytest.mark.unit
+
 
 def random_pose(rng: np.random.Generator) -> np.ndarray:
     return gtsam.Pose3.Expmap(rng.normal(0.0, [0.5] * 3 + [1.0] * 3)).matrix()

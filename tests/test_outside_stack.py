@@ -39,6 +39,8 @@ from planeslam.factors import (  # noqa: E402
 )
 from planeslam.sim.scenes import box_room_circle  # noqa: E402
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module")
 def circle():
@@ -74,6 +76,7 @@ def landmarks_from(observations, T_true, frames) -> PlaneLandmarks:
 # ---------------------------------------------------------------- the public surface
 
 
+@pytest.mark.integration
 def test_front_end_and_measurement_types_are_top_level():
     for name in planeslam.__all__:
         assert getattr(planeslam, name) is not None, name
@@ -379,6 +382,7 @@ def test_objects_need_whole_observations(circle):
         landmarks.objects()
 
 
+@pytest.mark.integration
 def test_objects_from_the_landmark_layer_on_rendered_frames():
     """The real front end on rendered depth, the caller's own poses: the landmark layer
     finds the paper's box and room with their sizes, in landmark ids."""

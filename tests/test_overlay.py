@@ -26,7 +26,9 @@ from planeslam.config import PlaneSlamConfig
 from planeslam.core.camera import CameraConfig, PixelRays
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.frontend.pipeline import FrontEnd
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
+
+pytestmark = pytest.mark.unit
 
 SMALL = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
 

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.integration  # builds and installs a wheel
+
 REPO = Path(__file__).resolve().parents[1]
 PROBE = (
     "import planeslam, planeslam.factors, planeslam.eval, planeslam.configs, pathlib;"

@@ -27,6 +27,8 @@ from planeslam.tracking.estimator import (
     fully_constrained,
 )
 
+pytestmark = pytest.mark.unit
+
 T_TRUE = pose_from_quat(np.array([0.4, -0.2, 1.1]), np.array([0.1, 0.2, -0.05, 0.97]))
 
 

@@ -19,6 +19,8 @@ from planeslam.core.quantised_fit import (
 from planeslam.frontend.segmentation import segment_planes
 from tests.conftest import shared_sequence
 
+pytestmark = pytest.mark.unit
+
 RAYS = PixelRays.for_camera(CameraConfig())
 STEP = DepthNoiseConfig().inverse_depth_step_per_m
 NOT_QUANTISED = DepthNoiseConfig(inverse_depth_step_per_m=0.0)

@@ -17,6 +17,8 @@ from planeslam.tracking.registration import (
     refine_icp,
 )
 
+pytestmark = pytest.mark.unit
+
 # ----------------------------------------------------------------------------- synthetic truth
 
 

@@ -14,7 +14,9 @@ from planeslam.eval.relocalisation import (
     keyframe_trajectory,
     relocalisation_benchmark,
 )
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
+
+pytestmark = pytest.mark.unit
 
 
 def test_report_counts_against_truth_and_the_map_run() -> None:
@@ -64,6 +66,7 @@ def test_frames_of_the_paper_circle_are_placed_in_its_map(tmp_path: Path) -> Non
         assert frame["run_aligned_translation_error_m"] < 0.005
 
 
+@pytest.mark.integration
 @pytest.mark.slow
 def test_a_map_started_at_the_identity_is_scored_in_its_own_frame(tmp_path: Path) -> None:
     """A run started at the identity instead of the first true pose (ICL-NUIM has no truth

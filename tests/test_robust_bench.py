@@ -35,8 +35,9 @@ from planeslam.sim.procedural import (
     draw_recipe,
     write_procedural,
 )
-from planeslam.sim.render import load_truth, render_frame
+from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import Box, Texture, make_scene
+from planeslam.sim.sequence import load_truth
 
 pytestmark = pytest.mark.unit
 
@@ -151,7 +152,7 @@ def test_textures_render_as_named() -> None:
 
 
 def test_tof_noise_grows_with_depth_and_drops_dark_faces() -> None:
-    from planeslam.sim.render import _SurfaceTruth
+    from planeslam.sim.noise import SurfaceTruth
     from planeslam.sim.tof import TofNoise
 
     model = TofNoise()
@@ -159,7 +160,7 @@ def test_tof_noise_grows_with_depth_and_drops_dark_faces() -> None:
     rng = np.random.default_rng(0)
     spreads = []
     for z in (1.0, 3.0):
-        truth = _SurfaceTruth(
+        truth = SurfaceTruth(
             np.ones((H, W), bool),
             np.full((H, W), z),
             np.zeros((H, W)),
@@ -168,7 +169,7 @@ def test_tof_noise_grows_with_depth_and_drops_dark_faces() -> None:
         depth = model.measure_depth(truth, CameraConfig(), rng)
         spreads.append(float(np.std(depth[depth > 0])))
     assert spreads[1] > 2 * spreads[0]
-    dark = _SurfaceTruth(
+    dark = SurfaceTruth(
         np.ones((H, W), bool),
         np.full((H, W), 4.0),
         np.zeros((H, W)),

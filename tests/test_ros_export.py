@@ -13,7 +13,9 @@ from planeslam.app.runner import run_sequence
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import pose_from_quat
 from planeslam.io.trajectory import read_tum
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
+
+pytestmark = pytest.mark.unit
 
 
 def read_bag(path: Path) -> dict[str, list]:
@@ -29,6 +31,7 @@ def read_bag(path: Path) -> dict[str, list]:
     return messages
 
 
+@pytest.mark.integration
 def test_results_bag_holds_tf_path_and_markers(tmp_path: Path) -> None:
     seq = synthesize("box_room_circle", tmp_path / "seq", seed=3).out_dir
     out, bag = tmp_path / "run", tmp_path / "bag"

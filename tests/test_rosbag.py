@@ -33,6 +33,8 @@ from planeslam.io.trajectory import Trajectory, read_tum, write_tum
 from tests.conftest import shared_sequence
 from tests.rosbag_writer import BagSpec, write_bag
 
+pytestmark = pytest.mark.unit
+
 CLIP = "tum_fr1_xyz_10f"
 FR1 = load_config("tum_fr1").camera
 BAGS = {

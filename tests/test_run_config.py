@@ -12,7 +12,9 @@ import yaml
 from planeslam.app.cli import main
 from planeslam.config import load_config
 from planeslam.io.trajectory import read_tum
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
+
+pytestmark = pytest.mark.integration  # `planeslam run` twice: the saved config repeats the run
 
 
 @pytest.fixture(scope="module")

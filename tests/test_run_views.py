@@ -4,7 +4,6 @@ reader), and the dense TSDF mesh from the run's poses."""
 
 from __future__ import annotations
 
-import base64
 import json
 import re
 import shutil
@@ -14,18 +13,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import shared_sequence
+from test_report import embedded_images
 
 from planeslam.app.cli import main
 from planeslam.app.mesh import mesh_run
 from planeslam.app.runner import run_sequence
 from planeslam.core.errors import ConfigError, EvaluationError
 from planeslam.core.types import TrackingPath
-from planeslam.eval.report import format_bytes, format_figure, write_report
+from planeslam.eval.report import write_report
 from planeslam.eval.run_info import read_run_info
 from planeslam.mapping.dense_mesh import TsdfConfig
 from planeslam.mapping.ply_export import _palette
 from planeslam.mapping.world_map import Map
-from planeslam.sim.render import load_truth, synthesize
+from planeslam.sim.sequence import load_truth, synthesize
+
+pytestmark = pytest.mark.integration  # a short run, then its report, rerun recordings and mesh
 
 CHROMIUM = Path("/usr/bin/chromium")
 FRAMES = 8
@@ -49,34 +51,6 @@ def run_dir(box_room: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 # --- figures and run.json ---------------------------------------------------------------------
 
 
-@pytest.mark.unit
-@pytest.mark.parametrize(
-    ("key", "value", "expected"),
-    [
-        ("fps", 12.2842, ("12.3", "Hz")),
-        ("peak_rss_mb", 448.0508, ("448.1", "MiB")),
-        ("ate_rmse_m", 0.048712, ("0.0487", "m")),
-        ("frame_ms_median", 28.456, ("28.5", "ms")),
-        ("map_bytes", 1690000, ("1.69 MB", "")),
-        ("memory_ratio", 2424.9, ("2425", "x")),
-        ("tracked_fraction", 0.98765, ("98.8", "%")),
-        ("lost_frames", 3, ("3", "")),
-        ("rpe_rot_deg_per_s", 2.41034, ("2.410", "deg/s")),
-        ("whatever", 0.123456789, ("0.1235", "")),
-        ("memory_ratio", None, ("n/a", "")),
-    ],
-)
-def test_figures_have_sensible_precision(key: str, value: object, expected: tuple) -> None:
-    assert format_figure(key, value) == expected
-
-
-@pytest.mark.unit
-def test_format_bytes() -> None:
-    assert format_bytes(999) == "999 bytes"
-    assert format_bytes(13188) == "13.2 KB"
-    assert format_bytes(4_100_000_000) == "4.1 GB"
-
-
 def test_run_records_what_it_was_made_from(run_dir: Path, box_room: Path) -> None:
     info = read_run_info(run_dir)
     assert Path(info.dataset) == box_room.resolve()
@@ -95,23 +69,12 @@ def test_missing_run_json_is_a_one_line_error(tmp_path: Path) -> None:
 # --- report -----------------------------------------------------------------------------------
 
 
-def _images(page: str) -> list[bytes]:
-    """The decoded PNGs of every <img> of the page; fails on an image that is not embedded."""
-    sources = re.findall(r'<img src="([^"]*)"', page)
-    assert sources
-    found = []
-    for src in sources:
-        assert src.startswith("data:image/png;base64,"), src[:60]
-        found.append(base64.b64decode(src.split(",", 1)[1]))
-    return found
-
-
 def test_report_stands_alone_with_header_and_map(run_dir: Path, tmp_path: Path) -> None:
     alone = tmp_path / "elsewhere" / "report.html"
     alone.parent.mkdir()
     shutil.copy(run_dir / "report.html", alone)  # copied without its folder
     page = alone.read_text(encoding="utf-8")
-    pngs = _images(page)
+    pngs = embedded_images(page)
     assert all(p[:8] == b"\x89PNG\r\n\x1a\n" for p in pngs)
     assert len(pngs) >= 4  # map, trajectory, ATE over time, per-frame timeline
     assert (run_dir / "map.png").read_bytes() in pngs
@@ -149,28 +112,6 @@ def test_report_reads_fields_it_does_not_know(run_dir: Path, tmp_path: Path) -> 
     (folder / "metrics.json").write_text(json.dumps(metrics))
     page = write_report(folder).read_text(encoding="utf-8")
     assert "87.5" in page and "301.3" in page and "rss after map mb" in page
-
-
-@pytest.mark.unit
-def test_report_lists_lost_frames_with_their_reasons(tmp_path: Path) -> None:
-    """Without run.json or a map: the tracking breakdown from frames.jsonl, lost frames
-    with their reasons, and the generic header."""
-    records = [
-        {"index": 0, "timestamp": 1.0, "path": "first", "reason": "", "keyframe": True},
-        {"index": 1, "timestamp": 1.5, "path": "lost", "reason": "2 planes, no corner"},
-        {"index": 2, "timestamp": 2.0, "path": "planes", "reason": "", "keyframe": True},
-    ]
-    (tmp_path / "frames.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
-    (tmp_path / "metrics.json").write_text(json.dumps({"frames": 3, "lost_frames": 1}))
-    page = write_report(tmp_path).read_text(encoding="utf-8")
-    assert "<td>lost</td><td>1</td><td>33.3 %</td>" in page
-    assert "<h3>Lost frames</h3>" in page
-    assert "<td>1</td><td>1.500</td><td>2 planes, no corner</td>" in page
-    assert "planeslam version" in page and "Top-down map" not in page
-    assert len(_images(page)) == 1  # the per-frame timeline
-    (tmp_path / "frames.jsonl").write_text('{"index": 0}\n')
-    with pytest.raises(EvaluationError, match=r"frames.jsonl:1: expected an object with"):
-        write_report(tmp_path)
 
 
 @pytest.mark.browser

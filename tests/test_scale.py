@@ -22,6 +22,8 @@ from planeslam.mapping.config import MapConfig
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
 
+pytestmark = pytest.mark.unit
+
 WALL_U, WALL_V = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
 
 
@@ -122,7 +124,7 @@ def test_pass_order_turns_without_repeating_the_end() -> None:
 
 
 def test_replay_points_at_the_source_and_replays_its_truth(tmp_path: Path) -> None:
-    from planeslam.sim.render import synthesize
+    from planeslam.sim.sequence import synthesize
 
     source = synthesize("box_room_circle", tmp_path / "src", frames=6, seed=0).out_dir
     replay = replay_sequence(source, tmp_path / "replay", passes=3)
@@ -171,7 +173,7 @@ def test_bench_long_reports_blocks_passes_memory_and_ate(
     tmp_path: Path, config_text: str | None
 ) -> None:
     from planeslam.app.bench_long import run_long
-    from planeslam.sim.render import synthesize
+    from planeslam.sim.sequence import synthesize
 
     source = synthesize("box_room_circle", tmp_path / "src", seed=0).out_dir  # 24 views
     # the views are 18 cm apart, as the paper's robot took them: 2 per second, not 30

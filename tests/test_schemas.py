@@ -19,6 +19,8 @@ from planeslam.io.trajectory import read_tum
 from planeslam.mapping.world_map import Map
 from planeslam.schemas import SCHEMAS, load_schema
 
+pytestmark = pytest.mark.unit
+
 
 @pytest.fixture(scope="module", params=["isam2", "merge"])
 def real_run(request, tmp_path_factory: pytest.TempPathFactory) -> Path:

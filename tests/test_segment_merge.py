@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from planeslam.core.plane_fit import moments_of, plane_from_moments
 from planeslam.frontend.config import ObjectConfig
@@ -14,6 +15,8 @@ from planeslam.mapping.contents import MapContents
 from planeslam.mapping.records import MapCorner, MapEdge, MapPlane
 from planeslam.mapping.seating import hull_on_plane
 from planeslam.mapping.segment_merge import merge_same_segments
+
+pytestmark = pytest.mark.unit
 
 
 def patch(pid: int, corner: list[float], u: list[float], v: list[float], obs: int) -> MapPlane:

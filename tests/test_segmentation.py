@@ -30,6 +30,8 @@ from planeslam.sim.render import plane_in_camera, render_frame
 from planeslam.sim.scenes import get_scene
 from tests.conftest import shared_sequence
 
+pytestmark = pytest.mark.unit
+
 CAMERA = CameraConfig()  # 640 x 480, f = 525
 RAYS = PixelRays.for_camera(CAMERA)
 ORGANIZED = SegmentationConfig()
@@ -98,6 +100,7 @@ def _check_plane_fields(seg: Segmentation, stride: int = 1) -> None:
         assert p.area_m2 > 0
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     ("scene_name", "frame"),
     [
@@ -119,6 +122,7 @@ def test_organized_matches_truth(scene_name, frame, stride):
     _check_plane_fields(seg, stride)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(("scene_name", "frame"), [("box_room_circle", 4), ("zigzag_panels", 59)])
 def test_msac_matches_truth(scene_name, frame):
     scene, T_world_cam, rendered = _render(scene_name, frame, seed=frame + 1)
@@ -127,6 +131,7 @@ def test_msac_matches_truth(scene_name, frame):
     _check_plane_fields(seg)
 
 
+@pytest.mark.slow  # two MSAC runs on a full frame
 def test_msac_is_reproducible_with_a_seed():
     _, _, rendered = _render("box_room_circle", 13, seed=5)
     a = segment_planes(rendered.depth_m, RAYS, MSAC, rng=np.random.default_rng(7))
@@ -322,7 +327,11 @@ def test_bad_camera_argument_and_config():
 
 
 @pytest.mark.parametrize(
-    ("method", "kind"), [("organized", OrganizedSegmenter), ("msac", MsacSegmenter)]
+    ("method", "kind"),
+    [
+        ("organized", OrganizedSegmenter),
+        pytest.param("msac", MsacSegmenter, marks=pytest.mark.slow),  # MSAC: seconds a frame
+    ],
 )
 def test_factory_picks_the_method_and_entry_points_agree(method, kind):
     """`make_segmenter` gives a `Segmenter` of the configured method, and

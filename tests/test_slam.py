@@ -20,8 +20,10 @@ from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, read_tum
 from planeslam.mapping.world_map import Map
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
 from planeslam.slam import SLAM, FrameResult, run_frames
+
+pytestmark = pytest.mark.integration  # full SLAM runs, `planeslam run`
 
 
 @pytest.fixture(scope="module")

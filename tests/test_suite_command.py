@@ -12,6 +12,8 @@ from planeslam.app.suite import run_suite_command
 from planeslam.core.errors import ConfigError
 from planeslam.eval.suite import load_suite
 
+pytestmark = pytest.mark.integration  # `planeslam suite`
+
 
 def write_suite(path: Path, body: str) -> Path:
     path.write_text(body, encoding="utf-8")

@@ -23,6 +23,8 @@ from planeslam.eval.suite import (
 )
 from tests.conftest import SHARED_DATA
 
+pytestmark = pytest.mark.integration  # the suite on a Dask LocalCluster of worker processes
+
 
 def _row(start: float, end: float) -> SuiteRow:
     return SuiteRow("s", "m", started_at=start, finished_at=end)

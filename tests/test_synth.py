@@ -14,16 +14,12 @@ from planeslam.core.camera import CameraConfig, PixelRays
 from planeslam.core.errors import ConfigError, DatasetFormatError
 from planeslam.core.geometry import pose_from_quat
 from planeslam.io.dataset import TumDataset
-from planeslam.sim.render import (
-    SCENES,
-    TRUTH_SCHEMA,
-    KinectNoise,
-    load_truth,
-    plane_in_camera,
-    render_frame,
-    synthesize,
-)
-from planeslam.sim.scenes import get_scene, look_at, make_scene
+from planeslam.sim.noise import KinectNoise
+from planeslam.sim.render import plane_in_camera, render_frame
+from planeslam.sim.scenes import SCENES, get_scene, look_at, make_scene
+from planeslam.sim.sequence import TRUTH_SCHEMA, load_truth, synthesize
+
+pytestmark = pytest.mark.unit
 
 SMALL = CameraConfig(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120)
 HALF = CameraConfig(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)

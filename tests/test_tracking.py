@@ -21,6 +21,8 @@ from planeslam.tracking.keypoints import LazyKeypoints
 from planeslam.tracking.relocalise import is_rival, primitive_hypotheses
 from planeslam.tracking.tracker import FrameView, MapView, Tracker
 
+pytestmark = pytest.mark.unit
+
 # A room corner (floor z = 0, walls x = 0 and y = 0) and a box (0.4 x 0.3 x 0.2 m) whose
 # visible corner is at (1.0, 0.8, 0.2); every normal faces the camera side (+x, +y, +z),
 # world frame, metres.

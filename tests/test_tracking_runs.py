@@ -21,10 +21,13 @@ from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import read_tum
 from planeslam.mapping.world_map import Map
-from planeslam.sim.render import render_frame, synthesize
+from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import SceneOptions, room_boxes_loop
+from planeslam.sim.sequence import synthesize
 from planeslam.slam import SLAM, run_frames
 from planeslam.tracking.segments import Segment
+
+pytestmark = pytest.mark.integration  # tracking on rendered and real sequences, whole runs
 
 
 def pose_errors(estimated: np.ndarray, truth: np.ndarray) -> np.ndarray:

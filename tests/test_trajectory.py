@@ -12,6 +12,8 @@ from planeslam.core.errors import DatasetFormatError
 from planeslam.core.geometry import invert_pose, pose_from_quat, quat_from_pose
 from planeslam.io.trajectory import Trajectory, TumWriter, read_tum, write_tum
 
+pytestmark = pytest.mark.unit
+
 
 def random_trajectory(rng: np.random.Generator, n: int = 20) -> Trajectory:
     quats = Rotation.random(n, random_state=rng.integers(1 << 31)).as_quat()

@@ -9,6 +9,8 @@ import pytest
 from planeslam.backend.window import FactorHistory, split_factors
 from planeslam.factors import LandmarkKeys, plane_factor
 
+pytestmark = pytest.mark.unit
+
 KEYS = LandmarkKeys()
 
 

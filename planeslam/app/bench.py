@@ -259,7 +259,7 @@ def default_cache_dir() -> Path:
 
 def synthetic_dataset(cache_dir: Path | None = None) -> Path:
     """Render SYNTH_SCENE (seed 0, default camera) once into the cache -> its folder."""
-    from planeslam.sim.render import synthesize
+    from planeslam.sim.sequence import synthesize
 
     folder = Path(cache_dir or default_cache_dir()) / SYNTH_SCENE
     if not (folder / "truth.json").is_file():

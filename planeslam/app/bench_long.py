@@ -373,7 +373,8 @@ def bench_long(
     table, then with several seeds `seeds_summary`), rewritten after each run."""
     if not seeds:
         raise ConfigError("bench long: at least one seed")
-    from planeslam.sim.render import SCENES, synthesize
+    from planeslam.sim.scenes import SCENES
+    from planeslam.sim.sequence import synthesize
 
     out_dir = Path(out_dir)
     if source in SCENES:

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import yaml
 
+from planeslam.app.subcommand import add_command
 from planeslam.config import open_configured, resolve_config
 from planeslam.core.config import ConfigLayer
 from planeslam.core.safe_files import atomic_output
@@ -74,10 +75,9 @@ def calibrate_sequence(
 
 def add_calibrate_command(sub: argparse._SubParsersAction) -> None:
     """The `calibrate` sub-command."""
-    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
     from planeslam.app.config_command import add_config_options
 
-    p = _command(
+    p = add_command(
         sub,
         "calibrate",
         help="fit the sensor's depth noise from the planes of a sequence",

@@ -30,6 +30,7 @@ from planeslam.app.dataset_options import TopicOverrides, add_topic_options
 from planeslam.app.download import add_download_command
 from planeslam.app.relocalise_command import add_relocalise_command
 from planeslam.app.signals import Terminated, stop_signals_interrupt
+from planeslam.app.subcommand import add_command, common_options
 from planeslam.app.synth_command import add_synth_command
 from planeslam.app.view_commands import (
     add_mesh_command,
@@ -43,39 +44,8 @@ from planeslam.core.native_tuning import keep_freed_memory
 log = logging.getLogger("planeslam")
 
 
-def _common_options(defaults: bool) -> argparse.ArgumentParser:
-    """-v / -q, accepted before and after the sub-command (after it, an absent flag leaves
-    what was given before it)."""
-    p = argparse.ArgumentParser(add_help=False)
-    p.add_argument(
-        "-v",
-        "--verbose",
-        action="count",
-        help="more log output",
-        default=0 if defaults else argparse.SUPPRESS,
-    )
-    p.add_argument(
-        "-q",
-        "--quiet",
-        action="store_true",
-        help="only warnings and errors, no progress bars",
-        default=False if defaults else argparse.SUPPRESS,
-    )
-    return p
-
-
-_SUBCOMMAND_OPTIONS = _common_options(defaults=False)
-
-
-def _command(
-    sub: argparse._SubParsersAction, name: str, **kwargs: object
-) -> argparse.ArgumentParser:
-    """A sub-command parser that also takes the global -v / -q."""
-    return sub.add_parser(name, parents=[_SUBCOMMAND_OPTIONS], **kwargs)  # type: ignore[arg-type]
-
-
 def _add_demo(sub: argparse._SubParsersAction) -> None:
-    p = _command(
+    p = add_command(
         sub,
         "demo",
         help="render the built-in synthetic scene and run planeslam on it",
@@ -97,7 +67,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _add_eval(sub: argparse._SubParsersAction) -> None:
-    p = _command(
+    p = add_command(
         sub,
         "eval",
         help="ATE and RPE of a TUM trajectory against ground truth (via evo)",
@@ -148,7 +118,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 def _add_run(sub: argparse._SubParsersAction) -> None:
     from planeslam.backend.base import BackendKind  # planeslam.slam loads Open3D: 1.4 s
 
-    p = _command(
+    p = add_command(
         sub,
         "run",
         help="full SLAM on a TUM-layout folder or a ROS bag (trajectory, map, metrics, evaluation)",
@@ -232,7 +202,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _add_frame(sub: argparse._SubParsersAction) -> None:
-    p = _command(
+    p = add_command(
         sub,
         "frame",
         help="the front end on one frame: frame.json and overlay.png",
@@ -266,9 +236,9 @@ def _cmd_frame(args: argparse.Namespace) -> int:
 
 
 def _add_bench(sub: argparse._SubParsersAction) -> None:
-    p = _command(sub, "bench", help="benchmarks: the front end's speed, or a suite of runs")
+    p = add_command(sub, "bench", help="benchmarks: the front end's speed, or a suite of runs")
     bench = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
-    f = _command(
+    f = add_command(
         bench,
         "frontend",
         help="per-stage speed of the front end on one core, with Open3D segment_plane",
@@ -288,7 +258,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     f.add_argument("--json", action="store_true", help="print one JSON object")
     f.set_defaults(func=_cmd_bench_frontend)
-    s = _command(
+    s = add_command(
         bench,
         "suite",
         help="run methods on sequences; one table (markdown + CSV)",
@@ -320,7 +290,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "a LocalCluster of --jobs workers on this machine)",
     )
     s.set_defaults(func=_cmd_bench_suite)
-    long = _command(
+    long = add_command(
         bench,
         "long",
         help="long sequences that revisit: fps, backend, landmarks and memory per block",
@@ -347,7 +317,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     )
     long.add_argument("--out", type=Path, default=Path("out/long"), help="output folder")
     long.set_defaults(func=_cmd_bench_long)
-    robust = _command(
+    robust = add_command(
         bench,
         "robust",
         help="robustness on generated sequences: a tuning and a validation set",
@@ -393,7 +363,7 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     add_override_option(robust)
     robust.set_defaults(func=_cmd_bench_robust)
 
-    speed = _command(
+    speed = add_command(
         bench,
         "speed",
         help="front end and whole system fps, 3 rounds, normalised by a reference workload",
@@ -550,7 +520,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="planeslam",
         description="RGB-D SLAM with a plane-object map (planes, real intersections, "
         "trihedral corners, classified objects with sizes) and a GTSAM backend.",
-        parents=[_common_options(defaults=True)],
+        parents=[common_options(defaults=True)],
     )
     parser.add_argument("--version", action="version", version=f"planeslam {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)

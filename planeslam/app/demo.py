@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from planeslam.app.runner import RunResult, run_sequence
-from planeslam.sim.render import synthesize
+from planeslam.sim.sequence import synthesize
 
 SCENE = "box_room_circle"
 

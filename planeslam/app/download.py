@@ -12,6 +12,7 @@ from pathlib import Path
 import yaml
 
 from planeslam.app.progress import byte_progress
+from planeslam.app.subcommand import add_command
 from planeslam.config import load_config
 from planeslam.core.config import to_mapping
 from planeslam.core.errors import ConfigError
@@ -90,9 +91,8 @@ def tum_sequence_list() -> str:
 
 def add_download_command(sub: argparse._SubParsersAction) -> None:
     """The `download` sub-command (sources: `tum`)."""
-    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
 
-    p = _command(
+    p = add_command(
         sub,
         "download",
         help="download a public dataset sequence (TUM RGB-D)",
@@ -100,7 +100,7 @@ def add_download_command(sub: argparse._SubParsersAction) -> None:
         "`planeslam run` reads.",
     )
     source = p.add_subparsers(dest="source", metavar="SOURCE", required=True)
-    t = _command(
+    t = add_command(
         source,
         "tum",
         help="a TUM RGB-D sequence by its short name (fr1/desk, fr3/structure_texture_far)",

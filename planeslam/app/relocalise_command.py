@@ -9,13 +9,13 @@ from pathlib import Path
 
 from planeslam.app.arg_types import COUNT
 from planeslam.app.config_command import add_config_options, camera_option, override_layers
+from planeslam.app.subcommand import add_command
 
 
 def add_relocalise_command(sub: argparse._SubParsersAction) -> None:
     """The `relocalise` sub-command."""
-    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
 
-    p = _command(
+    p = add_command(
         sub,
         "relocalise",
         help="place every n-th frame in a finished map on its own, against ground truth",

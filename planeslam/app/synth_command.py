@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from planeslam.app.arg_types import SEED, number, whole
+from planeslam.app.subcommand import add_command
 from planeslam.core.errors import ConfigError
 
 
@@ -20,10 +21,10 @@ def _range(text: str) -> tuple[float, float]:
 
 def add_synth_command(sub: argparse._SubParsersAction) -> None:
     """The `synth` sub-command."""
-    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
-    from planeslam.sim.render import NOISE_MODELS, SCENES
+    from planeslam.sim.noise import NOISE_MODELS
+    from planeslam.sim.scenes import SCENES
 
-    p = _command(
+    p = add_command(
         sub,
         "synth",
         help="render a synthetic RGB-D sequence with exact truth",
@@ -93,8 +94,8 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
 
 def _cmd_synth(args: argparse.Namespace) -> int:
     from planeslam.app.run_folder import check_empty_folder
-    from planeslam.sim.render import SynthOptions, render_sequence
     from planeslam.sim.scenes import SceneOptions, Texture
+    from planeslam.sim.sequence import SynthOptions, render_sequence
 
     check_empty_folder(args.outdir, args.overwrite)
 

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from planeslam.app.arg_types import COUNT, number
+from planeslam.app.subcommand import add_command
 
 if TYPE_CHECKING:
     from planeslam.app.viewer import RerunViewer
@@ -48,9 +49,8 @@ def viewer_from_args(args: argparse.Namespace, name: str) -> Iterator[RerunViewe
 
 def add_view_command(sub: argparse._SubParsersAction) -> None:
     """The `view` sub-command."""
-    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
 
-    p = _command(
+    p = add_command(
         sub,
         "view",
         help="replay a finished run in the rerun viewer (or record it to .rrd)",
@@ -82,9 +82,8 @@ def _cmd_view(args: argparse.Namespace) -> int:
 
 def add_mesh_command(sub: argparse._SubParsersAction) -> None:
     """The `mesh` sub-command."""
-    from planeslam.app.cli import _command  # cli imports this module: no cycle at load time
 
-    p = _command(
+    p = add_command(
         sub,
         "mesh",
         help="dense mesh of a finished run (TSDF of its keyframes, optimised poses)",

@@ -32,41 +32,34 @@ class BackendConfig:
     """Sigma of the prior on the first keyframe's translation [m]."""
     relinearize_threshold: float = 0.01
     """iSAM2 relinearises a variable whose delta exceeds this (local coordinates). Online
-    speed against accuracy: 0.001 costs 2.7x the update time on 7-Scenes; the final batch
-    optimisation (`final_iterations`) recovers the accuracy."""
+    speed against accuracy: lower costs update time; the final batch optimisation
+    (`final_iterations`) recovers the accuracy."""
     relinearize_skip: int = 1
     """iSAM2 checks for relinearisation every this many updates (gtsam's default 10
     converges too loosely for plane landmarks)."""
     extra_updates: int = 0
     """Additional ISAM2.update() iterations after each keyframe's update."""
     final_iterations: int = 2
-    """Gauss-Newton iterations over the whole graph when a run finishes (0: none). From
-    iSAM2's estimate two suffice: 7-Scenes ATE 4.87 cm with 2, 4.85 cm with 5 (0.9 s more)."""
+    """Gauss-Newton iterations over the whole graph when a run finishes (>= 0; 0: none).
+    From iSAM2's estimate two suffice; each costs about one batch elimination."""
     max_planes_per_keyframe: int = 0
     """0: every associated plane of a keyframe becomes a factor. N > 0: at most N, the
     re-observed landmarks first, each group chosen to fix the pose best
     (`isam2.informative_planes`); the map keeps every plane, those without a landmark
     stay where merged. An iSAM2 update costs steeply more with the planes per pose (each
-    plane seen from many poses fills the Bayes tree): on the five-pass 7-Scenes replay
-    (about 21 planes per keyframe) 8 cut the update median in the fifth pass from 905 to
-    130 ms and the backend's peak memory from 1186 to 294 MiB, but moved the ATE of
-    single runs by -0.6 to +4.4 cm (README, "Long runs"), so it is not the default."""
+    plane seen from many poses fills the Bayes tree); a budget keeps long runs' updates
+    flat but moves single runs' accuracy both ways (docs/experiments.md, "Long runs")."""
     tie_joined_planes: bool = True
     """Tie two plane landmarks the map merged into one (`KeyframeInput.joined_planes`) with a
     `same_plane_factor` (sigmas `landmarks.same_plane_sigma_*`), so that the graph, like the
-    map, holds one plane. Measured on 7-Scenes (2026-12-01): without the ties the five-pass
-    replay went wrong in its third pass (94 and 109 keyframes in the third and fourth 1,000
-    frames against 68 and 46 with them, 1,225 planes after four passes against 988, 4.8
-    against 11.7 fps); with them the wide baselines lost about a centimetre (every 10th /
-    20th / 30th frame 5.37 / 3.50 / 4.47 cm against 4.12 / 2.92 / 3.27 without) and the
-    30 Hz run stayed as it was (4.94 against 4.99 cm)."""
+    map, holds one plane. Without the ties a long run that revisits keeps duplicates apart
+    (docs/experiments.md, "Long runs")."""
     window_keyframes: int = 100
-    """0: iSAM2 holds the whole graph. N > 0: it holds the last N to 1.5 N keyframes, the
-    landmarks they observe and the factors among them, with every other variable held at
-    its estimate (`planeslam.backend.window`), so the update costs the same however large
-    the map grows; the final batch optimisation still runs over the whole graph. 100: the
-    five-pass 7-Scenes replay kept its fps (last block 1.21x the first's, 0.45x with the
-    whole graph) at 6.17 against 6.84 cm; 40 was faster still but drifted (10.4 cm)."""
+    """Sliding window of iSAM2 [keyframes] (>= 0). 0: iSAM2 holds the whole graph. N > 0:
+    it holds the last N to 1.5 N keyframes, the landmarks they observe and the factors
+    among them, with every other variable held at its estimate (`planeslam.backend.window`),
+    so the update costs the same however large the map grows; the final batch optimisation
+    still runs over the whole graph. Smaller is faster and drifts more."""
     keys: LandmarkKeys = field(default_factory=LandmarkKeys)
     """Symbol characters of poses, plane and corner landmarks."""
     landmarks: LandmarkConfig = field(
@@ -74,14 +67,14 @@ class BackendConfig:
     )
     """Noise and options of the landmark factors. Unlike an outside stack's, the plane
     factors here keep the fit covariance alone (`plane_correlated_depth` 0): the odometry
-    factors beside them come from registering the same planes, and with the correlated
-    depth term TUM fr1/desk's 9 frames went from 2.9 to 12.4 mm."""
+    factors beside them come from registering the same planes, so the correlated depth
+    error is counted there already."""
     keyframe_min_translation_m: float = 0.05
     """A frame this far [m] from the last keyframe becomes a keyframe."""
     keyframe_min_rotation_deg: float = 5.0
     """A frame rotated this much [deg] from the last keyframe becomes a keyframe."""
     keyframe_max_frames: int = 10
-    """A frame this many frames after the last keyframe becomes a keyframe."""
+    """A frame this many frames [>= 1] after the last keyframe becomes a keyframe."""
     keyframe_new_planes: int = 4
     """A frame with this many planes the map does not have yet becomes a keyframe."""
     keyframe_skip_revisits: bool = True
@@ -90,10 +83,8 @@ class BackendConfig:
     lag_frames: int = 2
     """A keyframe's result is applied to the map and poses before tracking the frame this
     many frames after it (or the next keyframe, if sooner): the smoother works on it
-    while the front end processes those frames. 0: at once (no overlap). Speed against
-    accuracy on 7-Scenes (1000 frames): 0 / 1 / 2 / 3 frames gave ATE 5.7 / 4.3 / 4.9 /
-    5.3 cm at 29.8 (inline) / 30.4 / 32.4 / 35.0 fps; on the 10-frame TUM fr1 clips
-    1.45 / 1.45 / 2.0 / 1.9 cm (xyz), 0.71 / 0.73 / 1.4 / 1.25 cm (desk)."""
+    while the front end processes those frames. 0: at once (no overlap). More lag is
+    faster; accuracy moves either way (docs/experiments.md, "The backend's lag")."""
     separate_process: bool = True
     """Run iSAM2 in a separate (child) process, on another core, beside tracking; false
     runs it inline in the caller's process (the same results on one core). Formerly

@@ -39,7 +39,7 @@ class CameraConfig:
     height: int = 480
     """Image height [pixels]."""
     depth_scale: float = 5000.0
-    """Depth PNG value per metre (TUM 5000, 7-Scenes 1000)."""
+    """Depth PNG value per metre [1/m] (> 0; TUM 5000, RealSense and 7-Scenes 1000)."""
     invalid_depth: tuple[int, ...] = (0,)
     """Raw depth values meaning 'no measurement' (0 always; 65535 for 7-Scenes)."""
     distortion: tuple[float, ...] = ()
@@ -118,13 +118,13 @@ class DepthNoiseConfig:
     """
 
     sigma_a_m: float = 0.0012
-    """Constant term a [m]."""
+    """Constant term a of sigma(z) = a + b z^2 [m] (> 0; `planeslam calibrate` fits it)."""
     sigma_b_per_m: float = 0.0019
-    """Quadratic coefficient b [1/m]."""
+    """Quadratic coefficient b of sigma(z) = a + b z^2 [1/m] (>= 0)."""
     inverse_depth_step_per_m: float = 0.00285
-    """Step of the sensor's quantised 1/z [1/m] (Kinect v1: 1/8 px of disparity at
-    580 px x 7.5 cm; 7-Scenes, TUM fr1 and ICL-NUIM all show 0.00285); far planes whose
-    fit the rounding could bias are refit for it (`core.quantised_fit`). 0: not quantised."""
+    """Step of the sensor's quantised 1/z [1/m] (>= 0; Kinect v1: 1/8 px of disparity at
+    580 px x 7.5 cm); far planes whose fit the rounding could bias are refit for it
+    (`core.quantised_fit`). 0: not quantised."""
 
     def __post_init__(self) -> None:
         if not float(self.sigma_a_m) > 0:

@@ -14,7 +14,7 @@ import logging
 import re
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -255,15 +255,25 @@ def _yaml_entry(key: str, value: Any) -> str:
     return text[1:-1]  # drop the braces of the one-entry flow mapping
 
 
-def format_with_sources(obj: Any, sources: Mapping[str, str], comment_column: int = 44) -> str:
+def format_with_sources(
+    obj: Any,
+    sources: Mapping[str, str],
+    comment_column: int = 44,
+    keys: Collection[str] | None = None,
+) -> str:
     """A resolved config (dataclass) as YAML, each key followed by `# <where it came from>`;
-    the text loads back as a config file."""
+    the text loads back as a config file. `keys` (dotted): only those and their sections."""
     lines: list[str] = []
+
+    def wanted(dotted: str) -> bool:
+        return keys is None or any(k == dotted or k.startswith(f"{dotted}.") for k in keys)
 
     def walk(mapping: Mapping[str, Any], prefix: str, depth: int) -> None:
         for key, value in mapping.items():
             dotted = f"{prefix}{key}"
             indent = "  " * depth
+            if not wanted(dotted):
+                continue
             if isinstance(value, dict) and dotted not in sources:
                 lines.append(f"{indent}{key}:")
                 walk(value, f"{dotted}.", depth + 1)

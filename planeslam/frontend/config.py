@@ -32,9 +32,9 @@ class OrganizedConfig:
     coplanar_max_angle_deg: float = 5.0
     """Largest angle between two regions merged as one plane [deg]."""
     pixel_stride: int = 2
-    """Fit and label every n-th pixel of every n-th row (1 = all; 2, the default, = a
-    quarter of the pixels: about 1.8x faster for the whole front end, planes, edges,
-    corners and box sizes within the same tolerances on the test scenes). Cells keep
+    """Fit and label every n-th pixel of every n-th row (>= 1; 1 = all; 2, the default, = a
+    quarter of the pixels: faster, with planes, edges, corners and box sizes within the
+    same tolerances on the test scenes). Cells keep
     `cell_size_px` in full-image pixels; `min_plane_points` stays in full-image pixels;
     `Plane.points` / `num_points` are the fitted (strided) inliers;
     `Segmentation.labels` stays full size (each label covers its n x n block)."""
@@ -109,7 +109,7 @@ class SegmentationConfig:
     min_plane_points: int = 1500
     """Smallest plane kept [inlier pixels]."""
     max_depth_m: float = 6.0
-    """Points farther than this are ignored [m]."""
+    """Points farther than this are ignored [m] (> 0)."""
     max_incidence_deg: float = 78.0
     """Cells and planes seen more obliquely than this (angle between the viewing ray
     and the normal) are rejected [deg]: depth edges leave 'veils' of mixed pixels

@@ -40,9 +40,8 @@ class MapConfig:
     consolidate_max_angle_deg: float = 10.0
     """... normals within this at most [deg] ..."""
     consolidate_max_offset_m: float = 0.05
-    """... the observed centroid within this of the map plane at most [m] (0.10 on
-    7-Scenes: the five-pass replay keeps 1.16x the first pass's planes at 3.73 cm against
-    1.33x at 3.89, but the single pass loses 0.6 cm; README, "Long runs") ..."""
+    """... the observed centroid within this of the map plane at most [m] (larger merges
+    more revisited planes and costs accuracy on single passes; docs/experiments.md) ..."""
     consolidate_max_gap_m: float = 0.10
     """... and outlines (convex hulls on the map plane) overlapping or at most this far
     apart [m]."""
@@ -53,19 +52,13 @@ class MapConfig:
     backend's choice (`Backend.map_cull_single_view_after`: 5 keyframes with isam2, 0 with
     merge, whose every frame is merged). A culled plane is remembered, so that a frame that
     sees it again does not count it as new (no keyframe for clutter). With isam2 and
-    `merge_segments` (both the default since 2026-12-02): the single 7-Scenes pass keeps 325
-    planes instead of 774 (ATE 4.10 against 3.76 cm; every 10th / 20th / 30th frame 3.86 /
-    3.08 / 3.52 against 3.58 / 3.92 / 3.78 cm), the five-pass replay 325 -> 406 (1.25x)
-    instead of 774 -> 1,079 (1.39x) at the same ATE (4.84 / 4.83 cm; README, "Long runs").
-    With the merge backend they cost accuracy (ICL-NUIM 2.33 against 0.89 cm)."""
+    `merge_segments` it keeps the map at about half the planes on long runs; with the
+    merge backend it costs accuracy, hence the backend's choice."""
     merge_segments: bool | None = None
     """After the backend moved a keyframe's planes, a map plane that came to lie on another
     one's segment (outlines as above) is merged into it (`segment_merge`), and the backend
     ties the two landmarks (`backend.tie_joined_planes`); None: the backend's choice
-    (`Backend.map_merge_segments`: on with isam2, off with merge). Alone (without culling)
-    it kept 1,008 planes instead of 1,362 on the five-pass replay at 5.5 instead of 6.8 cm,
-    but lost about a centimetre at wide baselines (before the last-pose rule; README, "Long
-    runs")."""
+    (`Backend.map_merge_segments`: on with isam2, off with merge)."""
     merge_segments_max_angle_deg: float = 2.0
     """... when their normals are within this [deg] ..."""
     merge_segments_max_offset_m: float = 0.02

@@ -40,7 +40,6 @@ import numpy as np
 from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import ConfigError
 from planeslam.io.trajectory import Trajectory
-from planeslam.sim.render import SynthResult, write_sequence
 from planeslam.sim.scenes import (
     Box,
     Panel,
@@ -53,6 +52,7 @@ from planeslam.sim.scenes import (
     periodic_shake,
     rot_z,
 )
+from planeslam.sim.sequence import SynthResult, write_sequence
 
 TRAJECTORY_KINDS = (
     "handheld",

@@ -34,7 +34,7 @@ from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import ConfigError
 
 if TYPE_CHECKING:
-    from planeslam.sim.render import _SurfaceTruth
+    from planeslam.sim.noise import SurfaceTruth
 
 
 @dataclass(frozen=True)
@@ -99,7 +99,7 @@ class TofNoise:
         return self.wiggle_m * np.sin(2.0 * np.pi * np.asarray(z_m) / self.wiggle_period_m)
 
     def measure_depth(
-        self, truth: _SurfaceTruth, camera: CameraConfig, rng: np.random.Generator
+        self, truth: SurfaceTruth, camera: CameraConfig, rng: np.random.Generator
     ) -> np.ndarray:
         """Measured depth (H, W) float32 [m], 0 = invalid, from the exact surface."""
         hit, z_true = truth.hit, truth.depth_m

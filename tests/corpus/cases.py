@@ -47,7 +47,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def synth_sequence(root: Path, frames: int = 6, scene: str = "box_room_circle", seed: int = 3):
     """A short rendered sequence (TUM layout, truth.json, groundtruth.txt) at SMALL_CAMERA."""
-    from planeslam.sim.render import synthesize
+    from planeslam.sim.sequence import synthesize
 
     return synthesize(scene, root, frames=frames, seed=seed, camera=SMALL_CAMERA)
 

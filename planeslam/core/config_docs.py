@@ -1,0 +1,163 @@
+"""The configuration reference, generated from the config dataclasses themselves: each
+key's type, default and the docstring under its field (read from the source with `ast`,
+as Python keeps no attribute docstrings at run time), as a markdown page."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import functools
+import inspect
+import textwrap
+import types
+import typing
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from planeslam.core.config import to_mapping
+
+
+@dataclass(frozen=True)
+class KeyDoc:
+    """One config key as the reference shows it."""
+
+    key: str
+    """Dotted path, e.g. 'camera.fx' (what `--set` and YAML files take)."""
+    type_text: str
+    """The accepted values, e.g. 'float', "'isam2' or 'merge'", 'int or null'."""
+    default: Any
+    """The default value (YAML-like: tuples as lists)."""
+    doc: str
+    """The field's docstring, whitespace collapsed to one paragraph ('' when missing)."""
+
+
+@functools.cache
+def field_docs(cls: type) -> dict[str, str]:
+    """Field name -> the docstring written under it in `cls`'s source ('' when none)."""
+    try:
+        source = textwrap.dedent(inspect.getsource(cls))
+    except (OSError, TypeError):  # no source (a frozen build): the reference has no text
+        return {}
+    body = ast.parse(source).body[0]
+    assert isinstance(body, ast.ClassDef)
+    docs: dict[str, str] = {}
+    statements = body.body
+    for here, after in zip(statements, statements[1:], strict=False):
+        if (
+            isinstance(here, ast.AnnAssign)
+            and isinstance(here.target, ast.Name)
+            and isinstance(after, ast.Expr)
+            and isinstance(after.value, ast.Constant)
+            and isinstance(after.value.value, str)
+        ):
+            docs[here.target.id] = " ".join(after.value.value.split())
+    return docs
+
+
+def type_text(hint: Any) -> str:
+    """A type hint in words a YAML writer understands: Literal choices quoted and joined
+    by 'or', None as 'null', tuples as lists."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin is typing.Literal:
+        return " or ".join(repr(a) for a in args)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(type_text(a) for a in args)
+    if origin is tuple:
+        return f"list of {type_text(args[0])}" if args else "list"
+    if hint is type(None):
+        return "null"
+    return getattr(hint, "__name__", str(hint))
+
+
+def key_docs(cls: type, prefix: str = "") -> list[KeyDoc]:
+    """Every key of config dataclass `cls`, sections expanded, in field order."""
+    hints = typing.get_type_hints(cls)
+    defaults = to_mapping(cls())
+    docs = field_docs(cls)
+    out: list[KeyDoc] = []
+    for f in dataclasses.fields(cls):
+        hint = hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            out += key_docs(hint, f"{prefix}{f.name}.")  # type: ignore[arg-type]
+        else:
+            out.append(
+                KeyDoc(f"{prefix}{f.name}", type_text(hint), defaults[f.name], docs.get(f.name, ""))
+            )
+    return out
+
+
+def section_docs(cls: type, prefix: str = "") -> dict[str, str]:
+    """Dotted section path -> the docstring under that section's field (the nested
+    dataclasses of `cls`, recursively)."""
+    hints = typing.get_type_hints(cls)
+    docs = field_docs(cls)
+    out: dict[str, str] = {}
+    for f in dataclasses.fields(cls):
+        if dataclasses.is_dataclass(hints[f.name]):
+            out[f"{prefix}{f.name}"] = docs.get(f.name, "")
+            out.update(section_docs(hints[f.name], f"{prefix}{f.name}."))
+    return out
+
+
+def _cell(text: str) -> str:
+    """Text safe inside a markdown table cell."""
+    return text.replace("|", "\\|")
+
+
+def _default_text(value: Any) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return repr(value)
+    return str(value)
+
+
+def _table(keys: Sequence[KeyDoc]) -> list[str]:
+    lines = ["| key | values | default | meaning |", "|---|---|---|---|"]
+    for k in keys:
+        lines.append(
+            f"| `{k.key}` | {_cell(k.type_text)} | `{_cell(_default_text(k.default))}` "
+            f"| {_cell(k.doc)} |"
+        )
+    return lines
+
+
+def reference_markdown(cls: type, basic: Sequence[str], header: str, command: str) -> str:
+    """The configuration reference of `cls` as markdown: `header` (a paragraph), the basic
+    keys in one table, then every other key in a table per section. `command` is the one
+    that writes the page, named at its top so that nobody edits it by hand."""
+    keys = key_docs(cls)
+    sections = section_docs(cls)
+    basic_set = set(basic)
+    lines = [
+        "# Configuration",
+        "",
+        f"<!-- Generated by `{command}` from the docstrings of the config",
+        "dataclasses: edit those, then run the command again (a test fails when this page",
+        "is stale). -->",
+        "",
+        header.strip(),
+        "",
+        "## Basic keys",
+        "",
+        *_table([k for k in keys if k.key in basic_set]),
+        "",
+        "## Advanced keys",
+        "",
+        "Everything else, per section. `planeslam config show --advanced` prints them with",
+        "their values and sources.",
+    ]
+    by_section: dict[str, list[KeyDoc]] = {}
+    for k in keys:
+        if k.key not in basic_set:
+            by_section.setdefault(k.key.rsplit(".", 1)[0], []).append(k)
+    for section, section_keys in by_section.items():
+        lines += ["", f"### `{section}`", ""]
+        if sections.get(section):
+            lines += [sections[section], ""]
+        lines += _table(section_keys)
+    return "\n".join(lines) + "\n"
