@@ -125,6 +125,14 @@ class RecoveringISAM2:
             self.rebuild()
             raise
 
+    def relinearise(self, iterations: int) -> None:
+        """`iterations` more `ISAM2.update()` calls (relinearising what moved), then take the
+        estimate: after a `restart` from an estimate far from the optimum."""
+        isam = self.isam
+        for _ in range(iterations):
+            isam.update()
+        self._estimate = isam.calculateEstimate()
+
     def rebuild(self) -> None:
         """A fresh iSAM2 from the committed factors, linearised at the last estimate."""
         self._isam, self._theta = new_isam2(self.params)

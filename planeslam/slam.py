@@ -598,8 +598,12 @@ class SLAM:
         stage_ms["map"] = 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
         T_prev_cam = None  # measured motion since the last keyframe
+        relocalised = False  # ... or none: placed by a whole-map search, or frames lost since
         if self._last_keyframe is not None:
             T_prev_cam = invert_pose(self._keyframe_online[self._last_keyframe]) @ T_world_cam
+            relocalised = track.path is TrackingPath.RELOCALISED or not all(
+                self._tracked[self._last_keyframe + 1 :]
+            )
         self.backend.submit(
             KeyframeInput(
                 index=index,
@@ -612,6 +616,7 @@ class SLAM:
                 odometry=self._odometry_since_keyframe if T_prev_cam is not None else None,
                 joined_planes=tuple(self._joined_planes),
                 loops=loops,
+                relocalised=relocalised,
             )
         )
         self._joined_planes = []

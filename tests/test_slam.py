@@ -287,3 +287,33 @@ def test_a_revisit_follows_the_keyframe_made_at_that_place(loop: Path) -> None:
     poses = slam.trajectory().T_world_cam
     for k in range(16, len(order)):  # the same image: the same final pose
         assert_pose_close(poses[k], poses[first_visit[order[k]]], 0.01, 0.5)
+
+
+def test_a_keyframe_after_lost_frames_goes_to_the_backend_as_relocalised(loop: Path) -> None:
+    """A blind frame (no valid depth) is lost; the next keyframe's motion from the previous
+    keyframe is then no measurement, so it reaches the backend marked `relocalised` (a weak
+    link there, not a confident odometry factor); every other keyframe is not, and the run
+    keeps its poses."""
+    cfg = resolve_config(loop)
+    dataset = TumDataset(loop, cfg.camera, cfg.dataset)
+    slam = SLAM(cfg, "isam2", T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
+    submitted = []
+    submit = slam.backend.submit
+
+    def record(keyframe):
+        submitted.append((keyframe.index, keyframe.relocalised))
+        submit(keyframe)
+
+    slam.backend.submit = record  # type: ignore[method-assign]
+    blind = 12
+    for i in range(30):
+        frame = dataset[i]
+        depth = np.zeros_like(frame.depth_m) if i == blind else frame.depth_m
+        result = slam.process(depth, frame.timestamp, frame.rgb)
+        assert result.lost == (i == blind), (i, result.reason)
+    slam.finish()
+    marked = [index for index, relocalised in submitted if relocalised]
+    first_after = min(index for index, _ in submitted if index > blind)
+    assert marked == [first_after], submitted
+    ev = evaluate_trajectory(dataset.groundtruth, slam.trajectory(), 0.02, 1.0)
+    assert ev.ate_rmse_m < 0.01, ev.ate_rmse_m

@@ -34,6 +34,35 @@ class BackendKind(str, enum.Enum):
         return self.value
 
 
+class ConstraintKind(str, enum.Enum):
+    """Constraints the iSAM2 backend can take back out of its graph."""
+
+    RELOCALISATION = "relocalisation"
+    """A relocalised keyframe's placement in the map: the factors of its group on older
+    landmarks (`planeslam.backend.hypotheses`)."""
+    LOOP = "loop"
+    """A loop constraint (`LoopConstraint`)."""
+
+    def __str__(self) -> str:
+        return self.value
+
+
+@dataclass(frozen=True)
+class RejectedConstraint:
+    """A relocalisation or loop that later keyframes contradicted: out of the graph."""
+
+    kind: ConstraintKind
+    index: int
+    """Frame index of the keyframe placed (the relocalised one, or the loop's)."""
+    old_index: int
+    """The keyframe it was placed against: the previous keyframe of a relocalisation, the
+    older keyframe of a loop."""
+    at_index: int
+    """The keyframe whose update rejected it."""
+    reason: str
+    """What contradicted it, in words."""
+
+
 @dataclass(frozen=True)
 class KeyframeInput:
     """One keyframe handed to a backend."""
@@ -61,6 +90,11 @@ class KeyframeInput:
     """Poses of it or of earlier keyframes (`LoopConstraint.index`: planeslam's loop search
     delivers a keyframe's with the next one, a larger stack's may be later still) against
     older keyframes they revisit (`planeslam.tracking.loops`)."""
+    relocalised: bool = False
+    """Whether `T_prev_cam` is no measured motion: the keyframe was placed by a whole-map
+    search, or frames since the previous keyframe were lost. The backend then ties it to the
+    previous keyframe only weakly and keeps its placement revocable
+    (`BackendConfig.relocalisation_trial_keyframes`)."""
 
 
 @dataclass(frozen=True)
@@ -80,6 +114,8 @@ class KeyframeUpdate:
     covariance: np.ndarray | None = None
     """(6, 6) marginal covariance of its pose after the update, in the pose's tangent space
     (gtsam's Pose3 order, rotation first); None when the backend has none."""
+    rejected: tuple[RejectedConstraint, ...] = ()
+    """Relocalisations and loops this update took out of the graph."""
 
 
 @dataclass(frozen=True)
@@ -102,6 +138,8 @@ class BackendResult:
     """Factors in the graph (0 without one)."""
     peak_rss_mb: float = 0.0
     """Peak resident memory of the backend's own process [MiB] (0 when it ran inline)."""
+    rejected: tuple[RejectedConstraint, ...] = ()
+    """Every relocalisation and loop taken out of the graph, in order."""
 
 
 class Backend(Protocol):

@@ -26,6 +26,20 @@ class BackendConfig:
     """... and of each translation component [m]; Huber-robust at `loop_huber_k` sigmas."""
     loop_huber_k: float = 2.0
     """Huber threshold of a loop factor [sigmas]."""
+    relocalisation_trial_keyframes: int = 10
+    """A relocalised keyframe (`KeyframeInput.relocalised`: placed by a whole-map search, or
+    after lost frames) is tied to the previous keyframe only weakly, and for this many
+    keyframes its group's factors on landmarks older than it (what places it in the map)
+    stay revocable: a loop that puts the group elsewhere waits, and when more such loops
+    agree with each other than with the relocalisation, the relocalisation's factors are
+    removed and its group moved to where the loops put it (`planeslam.backend.hypotheses`).
+    0: a relocalised keyframe enters like a tracked one (a confident odometry factor from
+    the guess) and for good."""
+    hypothesis_gate_m: float = 0.3
+    """Two placements of a keyframe (by a relocalisation, by a loop) agree within this
+    distance [m] ...; after an update a loop factor whose residual exceeds it is removed."""
+    hypothesis_gate_deg: float = 15.0
+    """... and this angle [deg]."""
     prior_sigma_rot_rad: float = 1e-4
     """Sigma of the prior on the first keyframe's rotation [rad]."""
     prior_sigma_trans_m: float = 1e-4
@@ -102,6 +116,8 @@ class BackendConfig:
             "loop_huber_k",
             "prior_sigma_rot_rad",
             "prior_sigma_trans_m",
+            "hypothesis_gate_m",
+            "hypothesis_gate_deg",
             "relinearize_threshold",
         ):
             _positive(getattr(self, name), f"backend.{name}")
@@ -118,6 +134,7 @@ class BackendConfig:
             ("keyframe_new_planes", 1),
             ("max_planes_per_keyframe", 0),
             ("window_keyframes", 0),
+            ("relocalisation_trial_keyframes", 0),
         ):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:

@@ -33,10 +33,18 @@ from collections.abc import Iterable, Mapping, Sequence
 import gtsam
 import numpy as np
 
+from planeslam.backend.base import ConstraintKind, RejectedConstraint
 from planeslam.backend.config import BackendConfig
+from planeslam.backend.hypotheses import (
+    WEAK_LINK_SIGMAS,
+    Relocalisation,
+    agree,
+    decide,
+    implied_placement,
+)
 from planeslam.backend.window import FactorHistory, split_factors
 from planeslam.core.errors import ConfigError
-from planeslam.core.geometry import as_pose, invert_pose
+from planeslam.core.geometry import as_pose, invert_pose, transform_plane, transform_points
 from planeslam.core.types import (
     FrameMeasurements,
     LoopConstraint,
@@ -67,6 +75,13 @@ class Isam2Backend:
         self._last_index: int | None = None
         self.update_ms: list[float] = []
         """Wall-clock ms of the iSAM2 work per keyframe (updates, retries, estimate)."""
+        self._groups: list[Relocalisation] = []  # every relocalised keyframe's group
+        self._current: Relocalisation | None = None  # the group new keyframes join
+        self._loops: list[tuple[LoopConstraint, gtsam.NonlinearFactor]] = []  # in the graph
+        self.rejected: list[RejectedConstraint] = []
+        """Relocalisations and loops taken out of the graph (or kept out), in order."""
+        self.last_rejected: tuple[RejectedConstraint, ...] = ()
+        """Those of the last `add_keyframe`."""
 
     # ------------------------------------------------------------------ queries
 
@@ -143,6 +158,7 @@ class Isam2Backend:
         joined_planes: Sequence[tuple[int, int]] = (),
         loops: Sequence[LoopConstraint] = (),
         odometry: RelativePose | None = None,
+        relocalised: bool = False,
     ) -> np.ndarray:
         """Add keyframe `index` with its measurements, update iSAM2 -> optimised T_world_cam (4, 4).
 
@@ -162,7 +178,15 @@ class Isam2Backend:
         Huber-robust BetweenFactorPose3 (`loop_sigma_*`); an older keyframe outside the
         window comes back into it held by its own factors. odometry: the caller's own
         measured motion since the previous keyframe (wheel, IMU, VIO), one more
-        BetweenFactorPose3 with its information.
+        BetweenFactorPose3 with its information. relocalised: the guess is no measured
+        motion from the previous keyframe (a whole-map relocalisation, or frames lost
+        since): with `relocalisation_trial_keyframes` > 0 the keyframe gets only a weak
+        link to the previous one instead of odometry, and its placement stays revocable
+        (`planeslam.backend.hypotheses`; what was taken out: `rejected`).
+
+        A loop whose residual after an update exceeds `hypothesis_gate_*` (the rest of the
+        graph contradicts it) is taken out of the graph; so is a relocalisation that loops
+        outvote.
         """
         if isinstance(index, bool) or int(index) != index:
             raise ConfigError(f"keyframe index {index!r}: expected an integer")
@@ -173,32 +197,37 @@ class Isam2Backend:
             )
         T_guess = as_pose(T_world_cam_guess, "T_world_cam_guess")
         pose_key = self.keys.pose(index)
-        pose_graph = gtsam.NonlinearFactorGraph()
+        cfg = self.config
+        own: list[gtsam.NonlinearFactor] = []
+        opened: Relocalisation | None = None
         if self._last_index is None:
-            cfg = self.config
             sigmas = np.r_[[cfg.prior_sigma_rot_rad] * 3, [cfg.prior_sigma_trans_m] * 3]
-            pose_graph.add(
+            own.append(
                 gtsam.PriorFactorPose3(
                     pose_key, gtsam.Pose3(T_guess), gtsam.noiseModel.Diagonal.Sigmas(sigmas)
                 )
             )
         else:
             prev_key = self.keys.pose(self._last_index)
-            if odometry_T_prev_cur is None:
-                T_prev = self._estimate.atPose3(prev_key).matrix()
-                T_prev_cur = invert_pose(T_prev) @ T_guess
+            T_prev = self._estimate.atPose3(prev_key).matrix()
+            if relocalised and cfg.relocalisation_trial_keyframes:
+                opened = self._open_group(index, invert_pose(T_prev) @ T_guess)
+                own.append(opened.link)
             else:
-                T_prev_cur = as_pose(odometry_T_prev_cur, "odometry_T_prev_cur")
-            pose_graph.add(
-                gtsam.BetweenFactorPose3(
-                    prev_key,
-                    pose_key,
-                    gtsam.Pose3(T_prev_cur),
-                    gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(odometry_sigmas)),
+                if odometry_T_prev_cur is None:
+                    T_prev_cur = invert_pose(T_prev) @ T_guess
+                else:
+                    T_prev_cur = as_pose(odometry_T_prev_cur, "odometry_T_prev_cur")
+                own.append(
+                    gtsam.BetweenFactorPose3(
+                        prev_key,
+                        pose_key,
+                        gtsam.Pose3(T_prev_cur),
+                        gtsam.noiseModel.Diagonal.Sigmas(self._odometry_sigmas(odometry_sigmas)),
+                    )
                 )
-            )
             if odometry is not None:
-                pose_graph.add(
+                own.append(
                     gtsam.BetweenFactorPose3(
                         prev_key,
                         pose_key,
@@ -206,8 +235,21 @@ class Isam2Backend:
                         gtsam.noiseModel.Gaussian.Information(odometry.information),
                     )
                 )
+        if opened is not None or relocalised:
+            self._current = opened
+        group = self._current
+        if group is not None:
+            group.keyframes.append(index)
+        held: list[tuple[LoopConstraint, Relocalisation]] = []
+        direct: list[tuple[LoopConstraint, gtsam.NonlinearFactor]] = []
         for loop in loops:
-            pose_graph.add(self._loop_factor(loop, index))
+            loop_factor = self._loop_factor(loop, index)
+            on_trial = self._group_on_trial(loop)
+            if on_trial is None:
+                direct.append((loop, loop_factor))
+                own.append(loop_factor)
+            else:
+                held.append((loop, on_trial))
         landmark_graph = gtsam.NonlinearFactorGraph()
         landmark_values = gtsam.Values()
         added = self.landmarks.add_observations(
@@ -231,22 +273,216 @@ class Isam2Backend:
             kinds=added.kinds + joins.kinds,
             values=landmark_values,  # all it inserted
         )
-        own = [pose_graph.at(i) for i in range(pose_graph.size())]
         taken_back, update_values = self._taken_back(own, pose_values, added)
         update_graph = gtsam.NonlinearFactorGraph()
         for factor in own + taken_back:
             update_graph.add(factor)
         outcome = self._smoother.update(update_graph, update_values, added, self.landmarks)
-        self._history.add(own + list(outcome.factors[update_graph.size() :]))
+        kept = list(outcome.factors[update_graph.size() :])
+        self._history.add(own + kept)
         self._history.take_estimate(self._smoother.estimate)
         self._window.append(index)
         limit = self.config.window_keyframes
         if limit and len(self._window) > limit + max(1, limit // 2):
             self._slide_window()
-        self.update_ms.append((time.perf_counter() - start) * 1e3)
         self._timestamps[index] = float(timestamp)
         self._last_index = index
+        if group is not None and group.on_trial:
+            group.ties.extend(f for f in kept if group.old_keys.intersection(f.keys()))
+            group.created.update(k for k in added.new_keys if self._estimate.exists(k))
+        self._loops.extend(direct)
+        rejected_before = len(self.rejected)
+        self._judge(index, held, {id(f) for _, f in direct})
+        self.last_rejected = tuple(self.rejected[rejected_before:])
+        self.update_ms.append((time.perf_counter() - start) * 1e3)
         return self._estimate.atPose3(pose_key).matrix()
+
+    # ------------------------------------------------------------------ hypotheses
+
+    def _open_group(self, index: int, T_prev_cur: np.ndarray) -> Relocalisation:
+        """The group of relocalised keyframe `index`, with its weak link from the previous
+        keyframe (`T_prev_cur` (4, 4): the guess's pose in it)."""
+        assert self._last_index is not None
+        link = gtsam.BetweenFactorPose3(
+            self.keys.pose(self._last_index),
+            self.keys.pose(index),
+            gtsam.Pose3(T_prev_cur),
+            gtsam.noiseModel.Diagonal.Sigmas(WEAK_LINK_SIGMAS),
+        )
+        keys = self.landmarks.keys
+        old = {keys.plane(j) for j in self.landmarks.plane_ids}
+        old |= {keys.corner(k) for k in self.landmarks.corner_ids}
+        group = Relocalisation(
+            first=index,
+            previous=self._last_index,
+            opened_at=len(self._timestamps),
+            link=link,
+            old_keys=frozenset(old),
+        )
+        self._groups.append(group)
+        return group
+
+    def _group_on_trial(self, loop: LoopConstraint) -> Relocalisation | None:
+        """The group on trial that `loop` places from outside (its keyframe in the group,
+        its older keyframe before it), if any."""
+        for group in self._groups:
+            if group.on_trial and group.holds(loop.index) and loop.old_index < group.first:
+                return group
+        return None
+
+    def _judge(
+        self, index: int, held: list[tuple[LoopConstraint, Relocalisation]], new: set[int]
+    ) -> None:
+        """After keyframe `index`'s update: the loops held out (placing a group on trial)
+        enter or wait, a group they outvote moves, trials that ran out end, and loops in
+        the graph that the rest contradicts (older than this update: not in `new`) leave."""
+        cfg = self.config
+        gate = (cfg.hypothesis_gate_m, cfg.hypothesis_gate_deg)
+        entering: list[tuple[LoopConstraint, gtsam.NonlinearFactor]] = []
+        for loop, group in held:
+            placed = implied_placement(
+                self._pose(loop.old_index), loop, self._pose(group.first), self._pose(loop.index)
+            )
+            if agree(placed, self._pose(group.first), *gate):
+                group.support += 1
+                entering.append((loop, self._loop_factor(loop, index)))
+            else:
+                logger.info(
+                    "loop %d-%d puts the group of relocalised keyframe %d elsewhere: it waits",
+                    loop.index,
+                    loop.old_index,
+                    group.first,
+                )
+                group.waiting.append((loop, placed))
+        if entering:
+            graph = gtsam.NonlinearFactorGraph()
+            for _, factor in entering:
+                graph.add(factor)
+            self._smoother.update(graph, gtsam.Values())
+            self._history.add(f for _, f in entering)
+            self._history.take_estimate(self._smoother.estimate)
+            self.landmarks.update_estimates(self._smoother.estimate)
+            self._loops.extend(entering)
+        for group in {id(g): g for _, g in held}.values():
+            verdict = decide(group, *gate)
+            if verdict is not None:
+                self._move_group(group, verdict[0], verdict[1], index)
+        trial = cfg.relocalisation_trial_keyframes
+        for group in self._groups:
+            if group.on_trial and len(self._timestamps) - group.opened_at >= trial:
+                group.on_trial = False
+                for loop, _ in group.waiting:
+                    self._reject(
+                        ConstraintKind.LOOP,
+                        loop,
+                        index,
+                        f"puts relocalised keyframe {group.first}'s group elsewhere",
+                    )
+                group.waiting, group.ties = [], []
+        contradicted = [
+            (loop, factor)
+            for loop, factor in self._loops
+            if id(factor) not in new
+            and not agree(
+                invert_pose(self._pose(loop.old_index)) @ self._pose(loop.index),
+                loop.T_old_cam,
+                *gate,
+            )
+        ]
+        if contradicted:
+            gone = {id(f) for _, f in contradicted}
+            self._loops = [(loop, f) for loop, f in self._loops if id(f) not in gone]
+            self._history.remove(f for _, f in contradicted)
+            for loop, _ in contradicted:
+                self._reject(ConstraintKind.LOOP, loop, index, "the optimised poses disagree")
+            self._restart_smoother()
+
+    def _move_group(
+        self, group: Relocalisation, rows: list[int], T_world_first: np.ndarray, index: int
+    ) -> None:
+        """Reject `group`'s relocalisation: its ties and weak link leave the graph, its
+        keyframes and landmarks move rigidly to put its first keyframe at T_world_first
+        (4, 4), weak links to it and from it are re-seeded, the waiting loops `rows` enter,
+        and iSAM2 restarts on the result."""
+        T_new_old = T_world_first @ invert_pose(self._pose(group.first))
+        moved = gtsam.Values()
+        for k in group.keyframes:
+            moved.insert(self.keys.pose(k), gtsam.Pose3(T_new_old @ self._pose(k)))
+        keys = self.landmarks.keys
+        for key in group.created:
+            if not self._estimate.exists(key):
+                continue
+            if gtsam.Symbol(key).chr() == ord(keys.plane_char):
+                plane = self._estimate.atOrientedPlane3(key)
+                n, d = transform_plane(
+                    T_new_old, np.asarray(plane.normal().point3()), float(plane.distance())
+                )
+                moved.insert(key, gtsam.OrientedPlane3(np.r_[n, d]))
+            else:
+                p = np.asarray(self._estimate.atPoint3(key), dtype=np.float64)
+                moved.insert(key, transform_points(T_new_old, p[None])[0])
+        self._history.take_estimate(moved)
+        self.landmarks.update_estimates(moved)
+        relinks = [g for g in self._groups if g is group or group.holds(g.previous)]
+        self._history.remove([*group.ties, *(g.link for g in relinks)])
+        for g in relinks:
+            g.link = gtsam.BetweenFactorPose3(
+                g.link.keys()[0],
+                g.link.keys()[1],
+                gtsam.Pose3(invert_pose(self._pose(g.previous)) @ self._pose(g.first)),
+                gtsam.noiseModel.Diagonal.Sigmas(WEAK_LINK_SIGMAS),
+            )
+        winners = [group.waiting[r][0] for r in rows]
+        entering = [(loop, self._loop_factor(loop, index)) for loop in winners]
+        self._history.add([*(g.link for g in relinks), *(f for _, f in entering)])
+        self._loops.extend(entering)
+        self._reject(
+            ConstraintKind.RELOCALISATION,
+            None,
+            index,
+            f"{len(rows)} loops agree on a place {np.linalg.norm(T_new_old[:3, 3]):.2f} m away",
+            group,
+        )
+        group.support = len(rows)
+        group.waiting = [w for r, w in enumerate(group.waiting) if r not in rows]
+        group.ties = []
+        group.on_trial = False
+        for loop, _ in group.waiting:
+            self._reject(ConstraintKind.LOOP, loop, index, "disagrees with the loops that won")
+        group.waiting = []
+        self._restart_smoother()
+
+    def _reject(
+        self,
+        kind: ConstraintKind,
+        loop: LoopConstraint | None,
+        index: int,
+        reason: str,
+        group: Relocalisation | None = None,
+    ) -> None:
+        if loop is not None:
+            placed, against = loop.index, loop.old_index
+        else:
+            assert group is not None
+            placed, against = group.first, group.previous
+        rejected = RejectedConstraint(kind, placed, against, index, reason)
+        logger.warning("%s of keyframe %d against %d rejected: %s", kind, placed, against, reason)
+        self.rejected.append(rejected)
+
+    def _restart_smoother(self) -> None:
+        """iSAM2 anew on the committed factors at the current estimate (after factors left
+        the graph and variables moved), relinearised a few times."""
+        if self.config.window_keyframes:
+            self._restart_window(self._window[-self.config.window_keyframes :], raising=True)
+        else:
+            self._smoother.restart(self._history.copy_graph(), gtsam.Values(self._estimate))
+        self._smoother.relinearise(3)
+        self._history.take_estimate(self._smoother.estimate)
+        self.landmarks.update_estimates(self._smoother.estimate)
+
+    def _pose(self, index: int) -> np.ndarray:
+        """The estimate of keyframe `index`'s T_world_cam (4, 4)."""
+        return self._estimate.atPose3(self.keys.pose(index)).matrix()
 
     def _loop_factor(self, loop: LoopConstraint, index: int) -> gtsam.BetweenFactorPose3:
         """The relative-pose factor of a loop constraint, added with keyframe `index`
@@ -302,7 +538,11 @@ class Isam2Backend:
     def _slide_window(self) -> None:
         """Restart iSAM2 on the last `window_keyframes` keyframes: their poses, the landmarks
         they observe and the factors among these, with the rest held (`split_factors`)."""
-        window = self._window[-self.config.window_keyframes :]
+        self._restart_window(self._window[-self.config.window_keyframes :])
+
+    def _restart_window(self, window: list[int], raising: bool = False) -> None:
+        """Restart iSAM2 on `window`'s keyframes (see `_slide_window`); when that is
+        indeterminate keep the larger window, or with `raising` restart on it."""
         poses = {self.keys.pose(i) for i in window}
         pose_char = ord(self.keys.pose_char)
         free = {
@@ -318,6 +558,10 @@ class Isam2Backend:
             self._smoother.restart(graph, self._history.values_of(free))
         except RuntimeError as exc:  # keep the larger window; try again next keyframe
             logger.warning("window not moved: %s", " ".join(str(exc).split())[:160])
+            if raising and window != self._window:
+                self._restart_window(self._window, raising=True)
+            elif raising:
+                raise
             return
         self._window = window
 

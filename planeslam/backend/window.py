@@ -34,15 +34,36 @@ class FactorHistory:
         """Every committed factor (the whole graph, for the final batch optimisation)."""
         self.estimate = gtsam.Values()
         """The last estimate of every variable (the window's variables from the smoother)."""
+        self._factors: list[gtsam.NonlinearFactor] = []  # `graph`'s, as the objects added
         self._factors_of: dict[int, list[int]] = defaultdict(list)
 
     def add(self, factors: Iterable[gtsam.NonlinearFactor]) -> None:
         """Commit factors (in order)."""
         for factor in factors:
-            position = int(self.graph.size())
+            position = len(self._factors)
             self.graph.add(factor)
+            self._factors.append(factor)
             for key in factor.keys():
                 self._factors_of[key].append(position)
+
+    def remove(self, factors: Iterable[gtsam.NonlinearFactor]) -> int:
+        """Take committed factors out (the very objects given to `add`); returns how many."""
+        gone = {id(f) for f in factors}
+        kept = [f for f in self._factors if id(f) not in gone]
+        removed = len(self._factors) - len(kept)
+        if removed:
+            self.graph = gtsam.NonlinearFactorGraph()
+            self._factors = []
+            self._factors_of = defaultdict(list)
+            self.add(kept)
+        return removed
+
+    def copy_graph(self) -> gtsam.NonlinearFactorGraph:
+        """A new graph of every committed factor."""
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._factors:
+            graph.add(factor)
+        return graph
 
     def take_estimate(self, values: gtsam.Values) -> None:
         """Take newer values of some variables (new ones inserted)."""
@@ -51,7 +72,7 @@ class FactorHistory:
     def factors_of(self, keys: Iterable[int]) -> list[gtsam.NonlinearFactor]:
         """The committed factors on any of `keys`, each once, in commit order."""
         positions = sorted({p for key in keys for p in self._factors_of.get(key, ())})
-        return [self.graph.at(p) for p in positions]
+        return [self._factors[p] for p in positions]
 
     def neighbours(self, keys: Iterable[int]) -> set[int]:
         """The variables that share a factor with any of `keys` (and `keys`)."""

@@ -225,6 +225,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             joined_planes=kf.joined_planes,
             loops=kf.loops,
             odometry=kf.odometry,
+            relocalised=kf.relocalised,
         )
         return KeyframeUpdate(
             index=kf.index,
@@ -233,6 +234,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             corners=backend.corner_estimates(kf.corner_ids.values()),
             update_ms=backend.update_ms[-1],
             covariance=backend.pose_covariance(kf.index),
+            rejected=backend.last_rejected,
         )
     if isinstance(request, _Finish):
         batch_ms = backend.optimize_batch(request.iterations) if request.iterations else 0.0
@@ -245,6 +247,7 @@ def _handle(backend: Isam2Backend, request: _Request) -> KeyframeUpdate | Backen
             failures=backend.failures,
             num_factors=backend.num_factors,
             peak_rss_mb=peak_rss_mb() if _IN_CHILD else 0.0,
+            rejected=tuple(backend.rejected),
         )
     raise ValueError(f"unknown backend request {request!r}")
 
