@@ -27,6 +27,8 @@ from planeslam.core.geometry import invert_pose, pose_distances, transform_plane
 from planeslam.core.types import FrameMeasurements, LoopConstraint  # noqa: E402
 from planeslam.sim.scenes import box_room_circle, rot_z  # noqa: E402
 
+pytestmark = pytest.mark.integration  # the backend with landmarks over 22 keyframes
+
 FRAMES = 36  # 10 deg steps: keyframe k + 18 is keyframe k turned half a turn
 RELOCALISED = 12
 KEYFRAMES = 22
