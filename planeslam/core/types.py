@@ -34,6 +34,9 @@ class TrackingPath(str, enum.Enum):
     """Planes fixed some directions, RGB-D odometry the rest."""
     PLANES_ICP = "planes+icp"
     """Planes fixed some directions, ICP the rest."""
+    PLANES_MOTION = "planes+motion"
+    """Nothing registered the frame, but its planes agree with the prediction: they fixed
+    some directions, the constant-velocity motion the rest (a plain wall sliding by)."""
     ODOMETRY = "odometry"
     """RGB-D odometry alone."""
     ICP = "icp"

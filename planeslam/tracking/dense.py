@@ -3,9 +3,8 @@
 Runs right after a tracked frame only (across a loss the prediction is stale), when
 nothing near the prediction fits the map. Each result is accepted by its own evidence:
 the frame's depth, moved by it, lands on the previous frame's (`agrees`), and its
-colours do not contradict the previous frame's (`colour_check`). A plane pose that fixed
-the rotation and some translation directions keeps them (`fill_translation`). The
-previous frame (its pose, cloud, colour and depth) is kept here.
+colours do not contradict the previous frame's (`colour_check`). The previous frame (its
+pose, cloud, colour and depth) is kept here.
 
 Frames: clouds in their camera frame; every pose is T_world_cam (4, 4).
 """
@@ -28,7 +27,7 @@ from planeslam.core.types import TrackingPath
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import Primitive
 from planeslam.tracking.plane_path import PoseSolve
-from planeslam.tracking.registration import RegistrationResult, RegistrationStatus, refine_icp
+from planeslam.tracking.registration import refine_icp
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -69,10 +68,8 @@ class DensePose:
     T: np.ndarray
     """(4, 4) T_world_cam."""
     path: TrackingPath
-    """odometry, icp, or planes+odometry / planes+icp when a plane pose kept its directions."""
+    """odometry or icp."""
     filled_by: Primitive
-    plane_dof: tuple[int, int]
-    """(rotation, translation) degrees of freedom the planes fixed."""
 
 
 class DenseFallback:
@@ -137,8 +134,8 @@ class DenseFallback:
         `planes` or the prediction T_pred (4, 4), taken when the result overlaps the
         previous frame's depth and its colours do not contradict it. When the frame
         `slides()` (its depth mostly on parallel planes, which any slide along them still
-        overlaps) and the colours cannot tell, `keypoints_agree(T)` must hold too. Why a
-        result was refused is appended to `reasons`."""
+        overlaps), its colours or `keypoints_agree(T)` must confirm the result: a plain wall
+        fixes no slide along it. Why a result was refused is appended to `reasons`."""
         methods: list[tuple[TrackingPath, Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(TrackingPath.ODOMETRY, Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
@@ -154,22 +151,13 @@ class DenseFallback:
             if colours is ColourCheck.CONTRADICTS:
                 reasons.append(f"{path.value} result: the colours contradict the previous frame")
                 continue
-            if colours is ColourCheck.UNKNOWN and slides() and not keypoints_agree(T):
+            if colours is not ColourCheck.CONFIRMS and slides() and not keypoints_agree(T):
                 reasons.append(
                     f"{path.value} result unconfirmed: the frame's depth is parallel planes "
-                    "and its keypoints do not agree"
+                    "and neither its colours nor its keypoints confirm it"
                 )
                 continue
-            reg = None if planes is None else planes.registration
-            if reg is not None and reg.status is RegistrationStatus.DEGENERATE_TRANSLATION:
-                with_planes = (
-                    TrackingPath.PLANES_ODOMETRY
-                    if path is TrackingPath.ODOMETRY
-                    else TrackingPath.PLANES_ICP
-                )
-                dof = (3, 3 - len(reg.unobservable_translation_dirs))
-                return DensePose(fill_translation(reg, T), with_planes, kind, dof)
-            return DensePose(T, path, kind, (0, 0))
+            return DensePose(T, path, kind)
         return None
 
     def _points(self, cloud: np.ndarray) -> np.ndarray:
@@ -289,15 +277,6 @@ class DenseFallback:
             invert_pose(self.previous_pose) @ T_world_cam_init,
         )
         return None if T_prev_cur is None else self.previous_pose @ T_prev_cur
-
-
-def fill_translation(reg: RegistrationResult, T_dense: np.ndarray) -> np.ndarray:
-    """The plane pose `reg.T` with its unobservable translation directions taken from the
-    dense pose T_dense (4, 4); rotation and the observed directions stay the planes'."""
-    U = reg.unobservable_translation_dirs.reshape(-1, 3)
-    T = reg.T.copy()
-    T[:3, 3] += U.T @ (U @ (T_dense[:3, 3] - reg.T[:3, 3]))
-    return T
 
 
 def smooth_grey(rgb: np.ndarray) -> np.ndarray:

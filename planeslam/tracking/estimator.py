@@ -47,6 +47,8 @@ class Primitive(str, enum.Enum):
     """RGB-D odometry against the previous frame."""
     ICP = "icp"
     """Point-to-plane ICP against the previous frame."""
+    MOTION = "motion"
+    """The constant-velocity prediction."""
 
     def __str__(self) -> str:
         return self.value

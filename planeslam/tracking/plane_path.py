@@ -179,6 +179,16 @@ class PlanePath:
             result, T = PoseSolve(reg, assoc), reg.T
         return result
 
+    def completed(
+        self, frame: FrameView, view: MapView, solve: PoseSolve, T_other: np.ndarray
+    ) -> tuple[np.ndarray, tuple[int, int]]:
+        """The plane pose of `solve`, solved again with the directions its planes leave free
+        taken from T_other (4, 4) (another method's pose), and the (rotation, translation)
+        degrees of freedom the planes fixed."""
+        reg = self._solve(frame, view, solve.association, T_other)
+        dof = (3 - len(reg.unobservable_rotation_axes), 3 - len(reg.unobservable_translation_dirs))
+        return reg.T, dof
+
     def _inliers(
         self, frame: FrameView, assoc: Association, reg: RegistrationResult
     ) -> Association | None:

@@ -42,7 +42,12 @@ from planeslam.tracking import motion
 from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.dense import ColourCheck, DenseFallback, RgbdPair, parallel_share
-from planeslam.tracking.estimator import ConstraintThresholds, EstimatorSettings, PoseConstraints
+from planeslam.tracking.estimator import (
+    ConstraintThresholds,
+    EstimatorSettings,
+    PoseConstraints,
+    Primitive,
+)
 from planeslam.tracking.joint import JointEstimator, JointSolve
 from planeslam.tracking.keypoints import (
     NO_KEYPOINTS,
@@ -253,7 +258,7 @@ class Tracker:
                     not weak
                     and motion.near(cfg, T_fast, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
                 )
-                or self._keypoints_agree(T_fast, points.get())
+                or self._keypoints_agree(points.get(), T_fast)
             )
         ):
             assoc = good.association
@@ -336,7 +341,9 @@ class Tracker:
                     keypoints,
                 )
         # 4. Keypoints that agree on no pose (a repetitive texture gives many) are no
-        # evidence of a jump: the dense fallback against the last frame still runs.
+        # evidence of a jump: the dense fallback against the last frame still runs. 5. When
+        # nothing registers the frame but its planes agree with the prediction, they fix
+        # what they can and the constant-velocity motion the rest (a plain wall sliding by).
         if self.prediction_valid:
             dense = self.dense.register(
                 T_pred,
@@ -345,24 +352,23 @@ class Tracker:
                 rgbd,
                 reasons,
                 slides,
-                lambda T: self._keypoints_agree(T, keypoints),
+                partial(self._keypoints_agree, keypoints),
             )
             if dense is not None:
-                assoc = (
-                    self.planes.associate(frame, view, dense.T)
-                    if not view.empty
-                    else Association([], [])
+                return self._completed(
+                    frame, view, good, dense.T, dense.filled_by, reasons, keypoints
                 )
-                found = PoseConstraints(
-                    *dense.plane_dof,
-                    filled_by=(dense.filled_by,),
-                    terms={"planes": len(assoc.planes)},
+            if (
+                good is not None
+                and good.registration.status in _PARTIAL
+                and frame_gap_s <= cfg.fast_max_gap_s
+                and motion.near(cfg, good.T, T_pred, True, T_last)
+            ):
+                reasons.append("the planes agree with the motion")
+                return self._completed(
+                    frame, view, good, T_pred, Primitive.MOTION, reasons, keypoints
                 )
-                reason = "; ".join(reasons)
-                return self._result(
-                    frame, view, dense.T, assoc, dense.path, reason, found, keypoints
-                )
-        # 5. Lost.
+        # 6. Lost.
         reasons.append("no fallback registered the frame")
         if view.empty and self.empty_map_starts:
             return TrackResult(
@@ -370,7 +376,29 @@ class Tracker:
             )
         return TrackResult(T_pred, TrackingPath.LOST, "; ".join(reasons), keypoints=keypoints)
 
-    def _keypoints_agree(self, T: np.ndarray, keypoints: Keypoints | None) -> bool:
+    def _completed(
+        self,
+        frame: FrameView,
+        view: MapView,
+        planes: PoseSolve | None,
+        T_other: np.ndarray,
+        filled_by: Primitive,
+        reasons: list[str],
+        keypoints: Keypoints | None,
+    ) -> TrackResult:
+        """The result of a fallback's pose T_other (4, 4), filled by `filled_by`: when the
+        trusted plane pose `planes` left directions free, the pose is the planes' with those
+        directions taken from T_other (`PlanePath.completed`)."""
+        if planes is None or planes.registration.status not in _PARTIAL:
+            T, dof, path = T_other, (0, 0), _ALONE[filled_by]
+        else:
+            T, dof = self.planes.completed(frame, view, planes, T_other)
+            path = _WITH_PLANES[filled_by]
+        assoc = self.planes.associate(frame, view, T) if not view.empty else Association([], [])
+        found = PoseConstraints(*dof, filled_by=(filled_by,), terms={"planes": len(assoc.planes)})
+        return self._result(frame, view, T, assoc, path, "; ".join(reasons), found, keypoints)
+
+    def _keypoints_agree(self, keypoints: Keypoints | None, T: np.ndarray) -> bool:
         """Whether at least `points.min_inliers` matches of the frame's keypoints (None: no
         keypoints, False) with the last keyframe's agree with T (4, 4): the cheap check of a
         plane pose that moved the prediction more than the fast path allows (online poses
@@ -380,3 +408,15 @@ class Tracker:
             return False
         matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
         return self.joint.agreeing(T, keypoints, matches) >= self.config.points.min_inliers
+
+
+_PARTIAL = (RegistrationStatus.DEGENERATE_ROTATION, RegistrationStatus.DEGENERATE_TRANSLATION)
+"""Plane poses that fixed some directions only."""
+_ALONE = {Primitive.ODOMETRY: TrackingPath.ODOMETRY, Primitive.ICP: TrackingPath.ICP}
+"""The path of a dense pose without planes."""
+_WITH_PLANES = {
+    Primitive.ODOMETRY: TrackingPath.PLANES_ODOMETRY,
+    Primitive.ICP: TrackingPath.PLANES_ICP,
+    Primitive.MOTION: TrackingPath.PLANES_MOTION,
+}
+"""The path of a partial plane pose completed by each method."""
