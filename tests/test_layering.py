@@ -120,7 +120,7 @@ def test_no_module_imports_the_cli():
 
 
 MAX_MODULE_LINES = 700
-LARGER_FOR_NOW = {"planeslam/slam.py", "planeslam/tracking/tracker.py"}
+LARGER_FOR_NOW = {"planeslam/slam.py"}
 """Modules still over the limit, each being split on its own branch; remove a name when it
 is split."""
 

@@ -13,7 +13,7 @@ is T_world_cam (4, 4).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -323,3 +323,25 @@ class JointEstimator:
             cfg.min_inliers,
         )
         return None if found is None else found.T_world_cam
+
+
+def estimator_settings(
+    config: TrackingConfig,
+) -> tuple[EstimatorSettings, EstimatorSettings, ConstraintThresholds]:
+    """The robust estimate's settings, those of the plane pose's refinement (its floors on
+    the plane sigmas), and when a direction counts as fixed, from the tracking config."""
+    settings = EstimatorSettings(
+        plane_sigma_angle_rad=np.radians(config.sigma_angle_deg),
+        plane_sigma_offset_m=config.sigma_offset_m,
+        line_sigma_m=config.sigma_line_m,
+        huber_k=config.huber_k,
+    )
+    refine = replace(
+        settings,
+        plane_sigma_angle_rad=np.radians(config.refine_floor_deg),
+        plane_sigma_offset_m=config.refine_floor_m,
+    )
+    thresholds = ConstraintThresholds(
+        max_sigma_rad=np.radians(config.max_sigma_deg), max_sigma_m=config.max_sigma_m
+    )
+    return settings, refine, thresholds

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from planeslam.core.camera import DepthNoiseConfig
+from planeslam.core.types import TrackingPath
 from planeslam.tracking.association import (
     Association,
     associate_with_corners,
@@ -30,13 +31,29 @@ from planeslam.tracking.estimator import (
     PlaneTerms,
     PointTerms,
     PoseConstraints,
+    Primitive,
     corner_terms,
     estimate_pose,
     fully_constrained,
 )
 from planeslam.tracking.hypotheses import pose_difference
-from planeslam.tracking.registration import RegistrationResult, pose_from_planes_and_points
+from planeslam.tracking.registration import (
+    RegistrationResult,
+    RegistrationStatus,
+    pose_from_planes_and_points,
+)
 from planeslam.tracking.views import FrameView, MapView
+
+PARTIAL = (RegistrationStatus.DEGENERATE_ROTATION, RegistrationStatus.DEGENERATE_TRANSLATION)
+"""Plane poses that fixed some directions only."""
+DENSE_PATHS = {Primitive.ODOMETRY: TrackingPath.ODOMETRY, Primitive.ICP: TrackingPath.ICP}
+"""The path of a dense pose without planes."""
+COMPLETED_PATHS = {
+    Primitive.ODOMETRY: TrackingPath.PLANES_ODOMETRY,
+    Primitive.ICP: TrackingPath.PLANES_ICP,
+    Primitive.MOTION: TrackingPath.PLANES_MOTION,
+}
+"""The path of a partial plane pose completed by each method."""
 
 
 @dataclass(frozen=True)

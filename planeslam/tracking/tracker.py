@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import replace
 from functools import partial
 from typing import TYPE_CHECKING
 
@@ -43,12 +42,10 @@ from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.dense import ColourCheck, DenseFallback, RgbdPair, parallel_share
 from planeslam.tracking.estimator import (
-    ConstraintThresholds,
-    EstimatorSettings,
     PoseConstraints,
     Primitive,
 )
-from planeslam.tracking.joint import JointEstimator, JointSolve
+from planeslam.tracking.joint import JointEstimator, JointSolve, estimator_settings
 from planeslam.tracking.keypoints import (
     NO_KEYPOINTS,
     KeypointDetector,
@@ -58,7 +55,15 @@ from planeslam.tracking.keypoints import (
     PointMatches,
 )
 from planeslam.tracking.loops import KeyframeLoops
-from planeslam.tracking.plane_path import PlanePath, PoseSolve, plane_constraints, trusted
+from planeslam.tracking.plane_path import (
+    COMPLETED_PATHS,
+    DENSE_PATHS,
+    PARTIAL,
+    PlanePath,
+    PoseSolve,
+    plane_constraints,
+    trusted,
+)
 from planeslam.tracking.registration import RegistrationStatus
 from planeslam.tracking.relocalise import relocalise
 from planeslam.tracking.result import TrackResult, track_result
@@ -99,20 +104,7 @@ class Tracker:
         self.keypoint_map: KeypointMap | None = None
         if config.points.enabled and camera is not None:
             self.keypoint_map = KeypointMap(KeypointDetector(camera, self.sensor, config.points))
-        self.settings = EstimatorSettings(
-            plane_sigma_angle_rad=np.radians(config.sigma_angle_deg),
-            plane_sigma_offset_m=config.sigma_offset_m,
-            line_sigma_m=config.sigma_line_m,
-            huber_k=config.huber_k,
-        )
-        self.refine_settings = replace(
-            self.settings,
-            plane_sigma_angle_rad=np.radians(config.refine_floor_deg),
-            plane_sigma_offset_m=config.refine_floor_m,
-        )
-        self.thresholds = ConstraintThresholds(
-            max_sigma_rad=np.radians(config.max_sigma_deg), max_sigma_m=config.max_sigma_m
-        )
+        self.settings, self.refine_settings, self.thresholds = estimator_settings(config)
         self.planes = PlanePath(config, self.sensor, self.refine_settings, self.thresholds)
         self.joint = JointEstimator(
             config, self.sensor, self.planes, self.settings, self.thresholds, self.rng
@@ -360,7 +352,7 @@ class Tracker:
                 )
             if (
                 good is not None
-                and good.registration.status in _PARTIAL
+                and good.registration.status in PARTIAL
                 and frame_gap_s <= cfg.fast_max_gap_s
                 and motion.near(cfg, good.T, T_pred, True, T_last)
             ):
@@ -386,37 +378,22 @@ class Tracker:
         reasons: list[str],
         keypoints: Keypoints | None,
     ) -> TrackResult:
-        """The result of a fallback's pose T_other (4, 4), filled by `filled_by`: when the
-        trusted plane pose `planes` left directions free, the pose is the planes' with those
-        directions taken from T_other (`PlanePath.completed`)."""
-        if planes is None or planes.registration.status not in _PARTIAL:
-            T, dof, path = T_other, (0, 0), _ALONE[filled_by]
+        """The result of a fallback's pose T_other (4, 4) (by `filled_by`), completing the
+        trusted plane pose `planes` when that left directions free (`PlanePath.completed`)."""
+        if planes is None or planes.registration.status not in PARTIAL:
+            T, dof, path = T_other, (0, 0), DENSE_PATHS[filled_by]
         else:
             T, dof = self.planes.completed(frame, view, planes, T_other)
-            path = _WITH_PLANES[filled_by]
+            path = COMPLETED_PATHS[filled_by]
         assoc = self.planes.associate(frame, view, T) if not view.empty else Association([], [])
         found = PoseConstraints(*dof, filled_by=(filled_by,), terms={"planes": len(assoc.planes)})
         return self._result(frame, view, T, assoc, path, "; ".join(reasons), found, keypoints)
 
     def _keypoints_agree(self, keypoints: Keypoints | None, T: np.ndarray) -> bool:
-        """Whether at least `points.min_inliers` matches of the frame's keypoints (None: no
-        keypoints, False) with the last keyframe's agree with T (4, 4): the cheap check of a
-        plane pose that moved the prediction more than the fast path allows (online poses
-        jitter by several cm even at 30 Hz; a wrong plane fit at a wide baseline does not
-        agree with the points)."""
+        """Whether at least `points.min_inliers` matches of the frame's keypoints (None:
+        False) with the last keyframe's agree with T (4, 4): a wrong plane fit at a wide
+        baseline does not agree with the points."""
         if keypoints is None or self.keypoint_map is None or not len(keypoints):
             return False
         matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
         return self.joint.agreeing(T, keypoints, matches) >= self.config.points.min_inliers
-
-
-_PARTIAL = (RegistrationStatus.DEGENERATE_ROTATION, RegistrationStatus.DEGENERATE_TRANSLATION)
-"""Plane poses that fixed some directions only."""
-_ALONE = {Primitive.ODOMETRY: TrackingPath.ODOMETRY, Primitive.ICP: TrackingPath.ICP}
-"""The path of a dense pose without planes."""
-_WITH_PLANES = {
-    Primitive.ODOMETRY: TrackingPath.PLANES_ODOMETRY,
-    Primitive.ICP: TrackingPath.PLANES_ICP,
-    Primitive.MOTION: TrackingPath.PLANES_MOTION,
-}
-"""The path of a partial plane pose completed by each method."""
