@@ -536,3 +536,28 @@ def test_a_plane_pose_with_a_weakly_fixed_translation_needs_the_keypoints(
         frame, map_view(), T, None, None, no_keypoints, frame_gap_s=0.033
     )
     assert plain.reason == "" and off.reason == ""
+
+
+def test_a_plain_wall_slides_with_the_motion_and_its_plane_fixes_the_rest(
+    rng: np.random.Generator,
+) -> None:
+    """One wall in view, nothing else registers the frame (no texture, no dense inputs):
+    its plane fixes the distance to it and the tilt, the constant-velocity prediction the
+    slide along it (path planes+motion); across a long gap or after a loss it is lost."""
+    T = camera_pose()
+    frame = observe(T, [1], rng)  # the wall x = 0
+    T_pred = T.copy()
+    T_pred[:3, 3] += [0.02, 0.03, 0.0]  # 2 cm off the wall's normal, 3 cm along it
+    result = Tracker(TrackingConfig())._track(
+        frame, map_view(), T_pred, None, None, frame_gap_s=1 / 30
+    )
+    assert result.path == "planes+motion"
+    assert result.constraints is not None and result.constraints.plane_translation_dof == 1
+    assert result.T_world_cam[0, 3] == pytest.approx(T[0, 3], abs=1e-9)  # from the plane
+    assert result.T_world_cam[1, 3] == pytest.approx(T_pred[1, 3], abs=1e-9)  # the motion's
+    np.testing.assert_allclose(result.T_world_cam[:3, :3], T[:3, :3], atol=1e-6)
+    late = Tracker(TrackingConfig())._track(frame, map_view(), T_pred, None, None, frame_gap_s=2.0)
+    assert late.lost
+    after_loss = Tracker(TrackingConfig())
+    after_loss.expect_jump()
+    assert after_loss._track(frame, map_view(), T_pred, None, None, frame_gap_s=1 / 30).lost
