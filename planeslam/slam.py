@@ -50,8 +50,8 @@ from planeslam.backend.base import (
     BackendResult,
     KeyframeInput,
     KeyframeUpdate,
-    create_backend,
 )
+from planeslam.backend.factory import create_backend
 from planeslam.backend.keyframes import nearest_keyframe
 from planeslam.config import PlaneSlamConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError, FrameReadError, PlaneSlamError

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from test_segment_merge import contents_with, edge, patch
 
-from planeslam.backend.base import create_backend
 from planeslam.backend.config import BackendConfig
+from planeslam.backend.factory import create_backend
 from planeslam.core.errors import ConfigError
 from planeslam.mapping.config import MapConfig
 from planeslam.mapping.culling import cull_single_view

@@ -11,6 +11,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import networkx as nx
 import pytest
 
 pytestmark = pytest.mark.unit
@@ -117,6 +118,31 @@ def test_no_module_imports_the_cli():
         if module == "planeslam.app.cli"
     ]
     assert not back, "modules importing the CLI:\n" + "\n".join(back)
+
+
+def _type_only_lines(path: Path) -> set[int]:
+    """Lines of the imports inside `if TYPE_CHECKING:` blocks (no import at run time)."""
+    lines: set[int] = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            lines |= {
+                n.lineno for n in ast.walk(node) if isinstance(n, ast.Import | ast.ImportFrom)
+            }
+    return lines
+
+
+def test_no_import_cycles_at_run_time():
+    """The library's modules import each other without a cycle (lazy imports inside
+    functions included, type-only imports left out): each room depends one way."""
+    graph = nx.DiGraph()
+    for path in _library_files():
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts)
+        type_only = _type_only_lines(path)
+        for line, imported in _imports(path):
+            if imported.startswith("planeslam.") and line not in type_only:
+                graph.add_edge(module, imported)
+    cycles = sorted(sorted(cycle) for cycle in nx.simple_cycles(graph))
+    assert not cycles, f"import cycles: {cycles}"
 
 
 MAX_MODULE_LINES = 700

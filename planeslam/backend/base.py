@@ -19,13 +19,11 @@ from typing import Protocol
 
 import numpy as np
 
-from planeslam.backend.config import BackendConfig
-from planeslam.core.errors import ConfigError
 from planeslam.core.types import FrameMeasurements, LoopConstraint, PlaneEstimate, RelativePose
 
 
 class BackendKind(str, enum.Enum):
-    """The backends `create_backend` builds."""
+    """The backends `factory.create_backend` builds."""
 
     ISAM2 = "isam2"
     MERGE = "merge"
@@ -181,19 +179,3 @@ class Backend(Protocol):
     def close(self) -> None:
         """Stop without optimising, dropping pending work (idempotent, prompt)."""
         ...
-
-
-def create_backend(kind: BackendKind | str, config: BackendConfig) -> Backend:
-    """The backend `kind` ('isam2' or 'merge') with its config section."""
-    try:
-        kind = BackendKind(kind)
-    except ValueError:
-        valid = ", ".join(k.value for k in BackendKind)
-        raise ConfigError(f"backend {kind!r} unknown; expected one of {valid}") from None
-    if kind is BackendKind.MERGE:
-        from planeslam.backend.merge import MergeBackend
-
-        return MergeBackend()
-    from planeslam.backend.worker import Isam2Worker
-
-    return Isam2Worker(config, inline=not config.separate_process)
