@@ -134,8 +134,8 @@ class DenseFallback:
         `planes` or the prediction T_pred (4, 4), taken when the result overlaps the
         previous frame's depth and its colours do not contradict it. When the frame
         `slides()` (its depth mostly on parallel planes, which any slide along them still
-        overlaps), its colours or `keypoints_agree(T)` must confirm the result: a plain wall
-        fixes no slide along it. Why a result was refused is appended to `reasons`."""
+        overlaps) and the colours cannot tell, `keypoints_agree(T)` must hold. Why a result
+        was refused is appended to `reasons`."""
         methods: list[tuple[TrackingPath, Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(TrackingPath.ODOMETRY, Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
@@ -151,10 +151,10 @@ class DenseFallback:
             if colours is ColourCheck.CONTRADICTS:
                 reasons.append(f"{path.value} result: the colours contradict the previous frame")
                 continue
-            if colours is not ColourCheck.CONFIRMS and slides() and not keypoints_agree(T):
+            if colours is ColourCheck.UNKNOWN and slides() and not keypoints_agree(T):
                 reasons.append(
                     f"{path.value} result unconfirmed: the frame's depth is parallel planes "
-                    "and neither its colours nor its keypoints confirm it"
+                    "and its keypoints do not agree"
                 )
                 continue
             return DensePose(T, path, kind)
