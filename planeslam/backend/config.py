@@ -35,11 +35,6 @@ class BackendConfig:
     removed and its group moved to where the loops put it (`planeslam.backend.hypotheses`).
     0: a relocalised keyframe enters like a tracked one (a confident odometry factor from
     the guess) and for good."""
-    hypothesis_gate_m: float = 0.3
-    """Two placements of a keyframe (by a relocalisation, by a loop) agree within this
-    distance [m] ...; after an update a loop factor whose residual exceeds it is removed."""
-    hypothesis_gate_deg: float = 15.0
-    """... and this angle [deg]."""
     prior_sigma_rot_rad: float = 1e-4
     """Sigma of the prior on the first keyframe's rotation [rad]."""
     prior_sigma_trans_m: float = 1e-4
@@ -116,8 +111,6 @@ class BackendConfig:
             "loop_huber_k",
             "prior_sigma_rot_rad",
             "prior_sigma_trans_m",
-            "hypothesis_gate_m",
-            "hypothesis_gate_deg",
             "relinearize_threshold",
         ):
             _positive(getattr(self, name), f"backend.{name}")

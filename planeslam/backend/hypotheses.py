@@ -40,6 +40,12 @@ import numpy as np
 from planeslam.core.geometry import invert_pose, pose_distances
 from planeslam.core.types import LoopConstraint
 
+HYPOTHESIS_GATE_M = 0.3
+"""Two placements of a keyframe (by a relocalisation, by a loop) agree within this
+distance [m] and HYPOTHESIS_GATE_DEG; after an update a loop factor whose residual exceeds
+them is removed. Constants, not keys: no benchmark sequence has shown a value to prefer."""
+HYPOTHESIS_GATE_DEG = 15.0
+"""See HYPOTHESIS_GATE_M [deg]."""
 WEAK_LINK_SIGMAS = np.r_[[1.0] * 3, [3.0] * 3]
 """Sigmas (rotation [rad], then translation [m]) of the link from the previous keyframe to
 a relocalised one: about what a room-sized scene leaves unknown."""

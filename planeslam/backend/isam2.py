@@ -36,6 +36,8 @@ import numpy as np
 from planeslam.backend.base import ConstraintKind, RejectedConstraint
 from planeslam.backend.config import BackendConfig
 from planeslam.backend.hypotheses import (
+    HYPOTHESIS_GATE_DEG,
+    HYPOTHESIS_GATE_M,
     WEAK_LINK_SIGMAS,
     Relocalisation,
     agree,
@@ -184,7 +186,7 @@ class Isam2Backend:
         link to the previous one instead of odometry, and its placement stays revocable
         (`planeslam.backend.hypotheses`; what was taken out: `rejected`).
 
-        A loop whose residual after an update exceeds `hypothesis_gate_*` (the rest of the
+        A loop whose residual after an update exceeds `HYPOTHESIS_GATE_*` (the rest of the
         graph contradicts it) is taken out of the graph; so is a relocalisation that loops
         outvote.
         """
@@ -337,7 +339,7 @@ class Isam2Backend:
         enter or wait, a group they outvote moves, trials that ran out end, and loops in
         the graph that the rest contradicts (older than this update: not in `new`) leave."""
         cfg = self.config
-        gate = (cfg.hypothesis_gate_m, cfg.hypothesis_gate_deg)
+        gate = (HYPOTHESIS_GATE_M, HYPOTHESIS_GATE_DEG)
         entering: list[tuple[LoopConstraint, gtsam.NonlinearFactor]] = []
         for loop, group in held:
             placed = implied_placement(
