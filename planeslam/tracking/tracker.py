@@ -17,9 +17,10 @@ path that gives a pose its evidence supports:
 4. `odometry` / `icp` (`dense`, right after a tracked frame only): RGB-D odometry, then
    ICP, against the previous frame, each accepted by its own overlap and colours (a plane
    pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`).
-   Keypoints that agree on no pose are no evidence against them: a repetitive texture
-   gives many such.
-5. `lost`: the pose is the prediction, and the frame is left out of the trajectory.
+   Keypoints that agree on no pose are no evidence against them.
+5. `planes+motion` (right after a tracked frame): a partial plane pose near the
+   prediction, the constant-velocity motion filling the directions it leaves free.
+6. `lost`: the pose is the prediction, and the frame is left out of the trajectory.
 
 Every result says which degrees of freedom the planes fixed and what filled the rest
 (`TrackResult.constraints`). Frames: map primitives in the world frame, observations in
@@ -332,10 +333,8 @@ class Tracker:
                     placed.constraints,
                     keypoints,
                 )
-        # 4. Keypoints that agree on no pose (a repetitive texture gives many) are no
-        # evidence of a jump: the dense fallback against the last frame still runs. 5. When
-        # nothing registers the frame but its planes agree with the prediction, they fix
-        # what they can and the constant-velocity motion the rest (a plain wall sliding by).
+        # 4. The dense fallback (keypoints that agree on no pose are no evidence of a jump);
+        # 5. a partial plane pose near the prediction, completed by the motion.
         if self.prediction_valid:
             dense = self.dense.register(
                 T_pred,
