@@ -23,7 +23,6 @@ import numpy as np
 from planeslam.core.camera import CameraConfig
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
-from planeslam.core.types import TrackingPath
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import Primitive
 from planeslam.tracking.plane_path import PoseSolve
@@ -67,9 +66,8 @@ class DensePose:
 
     T: np.ndarray
     """(4, 4) T_world_cam."""
-    path: TrackingPath
-    """odometry or icp."""
     filled_by: Primitive
+    """ODOMETRY or ICP."""
 
 
 class DenseFallback:
@@ -136,28 +134,28 @@ class DenseFallback:
         `slides()` (its depth mostly on parallel planes, which any slide along them still
         overlaps) and the colours cannot tell, `keypoints_agree(T)` must hold. Why a result
         was refused is appended to `reasons`."""
-        methods: list[tuple[TrackingPath, Primitive, Callable[[np.ndarray], np.ndarray | None]]]
-        methods = [(TrackingPath.ODOMETRY, Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
+        methods: list[tuple[Primitive, Callable[[np.ndarray], np.ndarray | None]]]
+        methods = [(Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
-            methods.append((TrackingPath.ICP, Primitive.ICP, lambda T0: self._icp(cloud, T0)))
-        for path, kind, method in methods:
+            methods.append((Primitive.ICP, lambda T0: self._icp(cloud, T0)))
+        for kind, method in methods:
             T = method(T_pred if planes is None else planes.T)
             if T is None:
                 continue
             if not self.agrees(cloud, T):
-                reasons.append(f"{path.value} result does not overlap the previous frame")
+                reasons.append(f"{kind.value} result does not overlap the previous frame")
                 continue
             colours = self.colour_check(cloud, rgbd, T)
             if colours is ColourCheck.CONTRADICTS:
-                reasons.append(f"{path.value} result: the colours contradict the previous frame")
+                reasons.append(f"{kind.value} result: the colours contradict the previous frame")
                 continue
             if colours is ColourCheck.UNKNOWN and slides() and not keypoints_agree(T):
                 reasons.append(
-                    f"{path.value} result unconfirmed: the frame's depth is parallel planes "
+                    f"{kind.value} result unconfirmed: the frame's depth is parallel planes "
                     "and its keypoints do not agree"
                 )
                 continue
-            return DensePose(T, path, kind)
+            return DensePose(T, kind)
         return None
 
     def _points(self, cloud: np.ndarray) -> np.ndarray:
