@@ -8,7 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from tests.corpus.tally import pytest_terminal_summary  # noqa: F401  (the fault corpus's figures)
+from tests.corpus.tally import (  # noqa: F401  (the fault corpus's figures, across xdist workers)
+    pytest_sessionfinish,
+    pytest_terminal_summary,
+    pytest_testnodedown,
+)
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SEQUENCES = ("7scenes_redkitchen_1000f", "tum_fr1_desk_9f", "tum_fr1_xyz_10f")

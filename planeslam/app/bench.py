@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import shutil
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
@@ -264,7 +265,18 @@ def synthetic_dataset(cache_dir: Path | None = None) -> Path:
     folder = Path(cache_dir or default_cache_dir()) / SYNTH_SCENE
     if not (folder / "truth.json").is_file():
         log.info("rendering %s into %s (once)", SYNTH_SCENE, folder)
-        synthesize(SYNTH_SCENE, folder, seed=0)
+        # Rendered beside the folder and renamed into place, so processes that render it
+        # at once (test workers, bench jobs) never read a half-written scene.
+        partial = folder.with_name(f".{SYNTH_SCENE}.{os.getpid()}.partial")
+        synthesize(SYNTH_SCENE, partial, seed=0)
+        if folder.is_dir() and not (folder / "truth.json").is_file():
+            shutil.rmtree(folder)  # a scene left half-written by an interrupted render
+        try:
+            partial.rename(folder)
+        except OSError:  # another process renamed its copy into place first
+            shutil.rmtree(partial, ignore_errors=True)
+            if not (folder / "truth.json").is_file():
+                raise
     return folder
 
 

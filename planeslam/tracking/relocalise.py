@@ -102,6 +102,8 @@ def relocalisation_candidates(
                 if _points_decide(frame, found.count, len(matches), cfg):
                     return Candidates(found.T_world_cam[None], matches)
                 poses = np.concatenate([found.T_world_cam[None], poses])
+    if not could_be_enough(frame, len(matches), cfg):
+        return Candidates(np.zeros((0, 4, 4)), matches)
     if not view.empty:
         poses = np.concatenate([poses, primitive_hypotheses(frame, view, cfg)])
     if not len(poses):
@@ -125,6 +127,13 @@ def relocalisation_candidates(
     order = np.lexsort((distance, -np.round(scores, 6)))
     order = _distinct(poses, order, cfg.relocalise_candidates)
     return Candidates(poses[order], matches)
+
+
+def could_be_enough(frame: FrameView, matches: int, cfg: TrackingConfig) -> bool:
+    """Whether any candidate could pass `relocalise`'s support test: a pose's inlier
+    planes are at most the frame's and its agreeing points at most its `matches`. A wall
+    or two parallel planes with few keypoints never relocalises, so no hypothesis is made."""
+    return matches >= cfg.relocalise_min_points or len(frame.plane_ids) >= cfg.relocalise_min_planes
 
 
 def _points_decide(frame: FrameView, inliers: int, matches: int, cfg: TrackingConfig) -> bool:

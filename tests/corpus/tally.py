@@ -44,6 +44,20 @@ def summary() -> str:
     )
 
 
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """In a pytest-xdist worker: hand the worker's outcomes to the controller."""
+    worker_output = getattr(session.config, "workeroutput", None)
+    if worker_output is not None:
+        worker_output["fault_corpus"] = {case: o.value for case, o in _outcomes.items()}
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node: object, error: object) -> None:
+    """In the pytest-xdist controller: gather a finished worker's outcomes."""
+    for case, value in getattr(node, "workeroutput", {}).get("fault_corpus", {}).items():
+        _outcomes[case] = Outcome(value)
+
+
 def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
     line = summary()
     if line:
