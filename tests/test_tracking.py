@@ -13,6 +13,7 @@ from helpers import assert_pose_close
 from planeslam.core.errors import ConfigError
 from planeslam.core.geometry import invert_pose, pose_from_quat, transform_plane
 from planeslam.tracking import hypotheses
+from planeslam.tracking import relocalise as relocalise_module
 from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import PoseConstraints
@@ -162,6 +163,31 @@ def test_a_far_relocalisation_right_after_a_tracked_frame_is_not_taken_alone(
     later = tracker._track(frame, map_view(), T_pred, None, None, frame_gap_s=2.0)
     assert later.path == "relocalised"
     assert_pose_close(later.T_world_cam, T, 1e-6, 1e-4)
+
+
+def test_a_frame_too_poor_to_relocalise_makes_no_hypotheses(
+    rng: np.random.Generator, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Fewer planes than `relocalise_min_planes` and no keypoints: no candidate could pass
+    the support test, so the whole-map search makes none (it cost seconds per frame on
+    walls); with enough planes it still relocalises."""
+    T = camera_pose()
+    made = []
+    real = relocalise_module.primitive_hypotheses
+    monkeypatch.setattr(
+        relocalise_module,
+        "primitive_hypotheses",
+        lambda *args: made.append(1) or real(*args),
+    )
+    tracker = Tracker(TrackingConfig(relocalise_min_planes=4))
+    tracker.expect_jump()
+    three = observe(T, [3, 4, 5], rng)  # the box's corner: hypotheses exist, support cannot
+    assert tracker.relocalise(three, map_view(), perturb(T, 1.0, 60.0)) is None
+    assert not made
+    six = observe(T, [0, 1, 2, 3, 4, 5], rng)
+    placed = tracker.relocalise(six, map_view(), perturb(T, 1.0, 60.0))
+    assert made and placed is not None
+    assert_pose_close(placed.T, T, 1e-6, 1e-4)
 
 
 def test_without_relocalisation_or_fallbacks_the_frame_is_lost(rng: np.random.Generator) -> None:
