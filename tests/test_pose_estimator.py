@@ -131,34 +131,6 @@ def test_corridor_planes_leave_one_direction_to_points(rng: np.random.Generator)
     assert constraints(alone, thresholds, {}).free == ("translation",)
 
 
-def test_a_keyframes_shared_error_weighs_its_points_but_does_not_free_a_direction(
-    rng: np.random.Generator,
-) -> None:
-    """200 keypoints matched with one keyframe carry its pose error (here 3 cm) in common,
-    spread over them as the tracker does. Along the corridor axis, which the planes leave
-    free, they fix the pose relative to the keyframe (sigma 1.8 mm), so the direction
-    counts as fixed by the points, while the estimate still weighs them as one 3 cm
-    measurement. Folded into the map covariances, the shared error made the axis look
-    free (sigma 3.2 cm, over the 3 cm threshold)."""
-    corridor = planes_seen(T_TRUE, ROOM_N[[0, 2, 3]], ROOM_D[[0, 2, 3]])
-    seen = points_seen(T_TRUE, rng.uniform(-1, 1, (200, 3)) + [3.0, 0.0, 0.0], sigma=0.005)
-    shared = np.broadcast_to(len(seen) * 0.03**2 * np.eye(3), (len(seen), 3, 3))
-    start = T_TRUE @ _retract(np.eye(4), np.r_[0.02, 0.01, -0.02, 0.1, -0.05, 0.05])
-    settings, thresholds = EstimatorSettings(), ConstraintThresholds()
-    with_shared = PointTerms(
-        seen.p_cam, seen.p_world, seen.cov_cam, seen.cov_world, cov_shared_world=shared
-    )
-    folded = PointTerms(seen.p_cam, seen.p_world, seen.cov_cam, seen.cov_world + shared)
-    est = estimate_pose(start, corridor, [with_shared], None, settings)
-    old = estimate_pose(start, corridor, [folded], None, settings)
-    np.testing.assert_array_equal(est.T_world_cam, old.T_world_cam)  # the same weights
-    assert_pose_close(est.T_world_cam, T_TRUE, 1e-8, 1e-6)
-    assert fully_constrained(est, thresholds)
-    assert constraints(est, thresholds, {}).filled_by == (Primitive.POINTS,)
-    assert not fully_constrained(old, thresholds)
-    assert constraints(old, thresholds, {}).free == ("translation",)
-
-
 def test_line_end_fills_the_corridor_axis() -> None:
     """Two walls meeting in a vertical edge fix rotation and the two horizontal directions;
     the edge's end point (where it meets the floor) fixes the height."""

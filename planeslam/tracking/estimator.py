@@ -26,7 +26,7 @@ from __future__ import annotations
 import enum
 import functools
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -87,22 +87,9 @@ class PointTerms:
     cov_world: np.ndarray
     """(M, 3, 3) map covariances [m^2], world frame."""
     kind: Primitive = Primitive.POINTS
-    cov_shared_world: np.ndarray | None = None
-    """(M, 3, 3) or None: variance common to groups of the points [m^2], world frame (a
-    keyframe's pose error, shared by all its points). It weighs the estimate but is no
-    lack of constraint: the reported information leaves it out, so points that fix a
-    direction relative to their keyframe count as fixing it."""
 
     def __len__(self) -> int:
         return len(self.p_cam)
-
-    def weighted(self) -> PointTerms:
-        """These terms with the shared variance added to the map covariances."""
-        if self.cov_shared_world is None:
-            return self
-        return replace(
-            self, cov_world=self.cov_world + self.cov_shared_world, cov_shared_world=None
-        )
 
 
 def corner_terms(p_cam: np.ndarray, p_world: np.ndarray, sigma_m: float) -> PointTerms:
@@ -299,17 +286,13 @@ def estimate_pose(
     if planes is not None and len(planes):
         bases, W = _plane_bases(planes), _whitener(planes.covariance + floor)
         systems.append((Primitive.PLANES, lambda X: _plane_system(X, planes, bases, W)))
-    reported = list(systems)  # the same systems, points without their shared variance
     for terms in points:
         if len(terms):
-            W_p = _point_whiteners(T, terms.weighted())
+            W_p = _point_whiteners(T, terms)
             systems.append((terms.kind, functools.partial(_point_system, terms=terms, W=W_p)))
-            W_r = W_p if terms.cov_shared_world is None else _point_whiteners(T, terms)
-            reported.append((terms.kind, functools.partial(_point_system, terms=terms, W=W_r)))
     if lines is not None and len(lines):
         sigma = settings.line_sigma_m
         systems.append((Primitive.LINES, lambda X: _line_system(X, lines, sigma)))
-        reported.append(systems[-1])
     k = settings.huber_k
     for it in range(1, settings.iterations + 1):
         cut = np.inf if it <= settings.settle_iterations else settings.reject_k
@@ -320,8 +303,7 @@ def estimate_pose(
         small = np.linalg.norm(xi[:3]) < 1e-7 and np.linalg.norm(xi[3:]) < 1e-7
         if small and it > settings.settle_iterations:
             break
-    inliers = _normal_equations(T, systems, k, settings.reject_k)[3]
-    _, _, info, _ = _normal_equations(T, reported, k, settings.reject_k, weights_of=systems)
+    _, _, info, inliers = _normal_equations(T, systems, k, settings.reject_k)
     point_kinds = (Primitive.POINTS, Primitive.CORNERS)
     by_kind = iter(mask for kind, mask in inliers if kind in point_kinds)
     return PoseEstimate(
@@ -337,17 +319,15 @@ def estimate_pose(
     )
 
 
-def _normal_equations(T, systems, k: float, cut: float, weights_of=None):
+def _normal_equations(T, systems, k: float, cut: float):
     """H (6, 6), g (6,) of the robustly weighted terms at T, the information per
-    primitive, and per system its kind and inlier mask (within k sigmas); with
-    `weights_of` (systems term for term like `systems`), the robust weights are theirs."""
+    primitive, and per system its kind and inlier mask (within k sigmas)."""
     H, g = np.zeros((6, 6)), np.zeros(6)
     info: dict[Primitive, np.ndarray] = {}
     inliers: list[tuple[Primitive, np.ndarray]] = []
-    for (kind, system), (_, weighing) in zip(systems, weights_of or systems, strict=True):
+    for kind, system in systems:
         e, J = system(T)
-        e_w = e if weighing is system else weighing(T)[0]
-        norm = np.sqrt(np.sum(e_w * e_w, axis=1))
+        norm = np.sqrt(np.sum(e * e, axis=1))
         root = np.sqrt(_weights(norm, k, cut))
         Jw = (J * root[:, None, None]).reshape(-1, 6)
         Hk = Jw.T @ Jw

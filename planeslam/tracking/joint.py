@@ -137,8 +137,7 @@ class JointEstimator:
                     p_cam[use],
                     matches.points_world[use],
                     keypoints.covariances[matches.observed[use]],
-                    matches.covariances_world[use],
-                    cov_shared_world=shared,
+                    matches.covariances_world[use] + shared,
                 )
             )
         if not len(planes) and not sum(len(p) for p in terms):
