@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -32,6 +33,20 @@ from planeslam.tracking.glitches import PoseGlitches, find_pose_glitches, reesti
 from planeslam.tracking.views import MapView
 
 logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class FinalMap:
+    """What the frames' final poses are estimated against when a run finishes."""
+
+    view: MapView
+    """The final map's planes and corners (world frame)."""
+    settings: EstimatorSettings
+    """Tracking's refinement settings (`Tracker.refine_settings`)."""
+    thresholds: ConstraintThresholds
+    """When a direction counts as fixed (`Tracker.thresholds`)."""
+    config: TrackingConfig
+    """`final_poses`, `settle_glitches`, the corner noise and the step and jump limits."""
 
 
 class AnchoredPoses:
@@ -192,44 +207,31 @@ class AnchoredPoses:
             config.fast_max_jump_deg,
         )
 
-    def settle(
-        self,
-        view: MapView,
-        settings: EstimatorSettings,
-        thresholds: ConstraintThresholds,
-        config: TrackingConfig,
-    ) -> tuple[dict[str, float], dict[str, Any]]:
-        """After the final optimisation (`set_final`), against the final map `view` (world
-        frame) with tracking's refinement `settings` and `thresholds`: the frames between
+    def settle(self, final: FinalMap) -> tuple[dict[str, float], dict[str, Any]]:
+        """After the final optimisation (`set_final`), against `final`: the frames between
         keyframes re-estimated (`tracking.final_poses`), then the trajectory's glitches
         settled (`tracking.settle_glitches`). Returns the two summaries ({} when off)."""
         terms, self._terms = self._terms, {}
         reestimated: dict[str, float] = {}
         settled: dict[str, Any] = {}
-        if config.final_poses:
-            reestimated = self._reestimate(terms, view, settings, thresholds, config)
-        if config.settle_glitches:
-            settled = self._settle_glitches(terms, view, settings, thresholds, config)
+        if final.config.final_poses:
+            reestimated = self._reestimate(terms, final)
+        if final.config.settle_glitches:
+            settled = self._settle_glitches(terms, final)
         return reestimated, settled
 
-    def _reestimate(
-        self,
-        terms: Mapping[int, FrameTerms],
-        view: MapView,
-        settings: EstimatorSettings,
-        thresholds: ConstraintThresholds,
-        config: TrackingConfig,
-    ) -> dict[str, float]:
+    def _reestimate(self, terms: Mapping[int, FrameTerms], final: FinalMap) -> dict[str, float]:
         """Each frame with `terms` re-estimated against the final map; a frame the map does
         not fix keeps its anchored pose. Returns the counts ('reestimated', 'kept') and the
         wall-clock 'ms'."""
         start = time.perf_counter()
         frames = {k: (frame_terms, self.final_pose(k)) for k, frame_terms in terms.items()}
+        config = final.config
         found = final_poses(
             frames,
-            view,
-            settings,
-            thresholds,
+            final.view,
+            final.settings,
+            final.thresholds,
             config.sigma_point_m,
             config.final_max_step_m,
             config.final_max_step_deg,
@@ -249,18 +251,12 @@ class AnchoredPoses:
         )
         return summary
 
-    def _settle_glitches(
-        self,
-        terms: Mapping[int, FrameTerms],
-        view: MapView,
-        settings: EstimatorSettings,
-        thresholds: ConstraintThresholds,
-        config: TrackingConfig,
-    ) -> dict[str, Any]:
+    def _settle_glitches(self, terms: Mapping[int, FrameTerms], final: FinalMap) -> dict[str, Any]:
         """The final trajectory's pose glitches: each frame with `terms` that they fix from
         the pose its good neighbours put it at takes that estimate; the others are left out
         as lost. Returns the glitches 'found' (and their 'found_timestamps' [s]), those
         're_estimated' and those 'left_out'."""
+        config = final.config
         trajectory = self.trajectory()
         found = self.glitches(config, trajectory)
         frames = [k for k, tracked in enumerate(self._tracked) if tracked]  # row -> frame
@@ -268,9 +264,9 @@ class AnchoredPoses:
             trajectory,
             found.rows.tolist(),
             {int(r): terms[frames[r]] for r in found.rows if frames[r] in terms},
-            view,
-            settings,
-            thresholds,
+            final.view,
+            final.settings,
+            final.thresholds,
             config.sigma_point_m,
             found.max_span_s,
             config.fast_max_jump_m,

@@ -64,7 +64,7 @@ from planeslam.frontend.pipeline import FrameObservation, FrontEnd
 from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
-from planeslam.slam.anchors import AnchoredPoses
+from planeslam.slam.anchors import AnchoredPoses, FinalMap
 from planeslam.slam.records import FrameResult
 from planeslam.tracking.glitches import PoseGlitches
 from planeslam.tracking.keypoints import Keypoints
@@ -609,11 +609,10 @@ class SLAM:
             self.map.apply_estimates(result.planes, result.corners)
         cfg = self.config.tracking
         if cfg.final_poses or cfg.settle_glitches:
-            view = self.map_view()
-            settings, thresholds = self.tracker.refine_settings, self.tracker.thresholds
-            self.final_poses, self.settled_glitches = self.poses.settle(
-                view, settings, thresholds, cfg
+            final = FinalMap(
+                self.map_view(), self.tracker.refine_settings, self.tracker.thresholds, cfg
             )
+            self.final_poses, self.settled_glitches = self.poses.settle(final)
         self.backend_result = result
         return 1e3 * (time.perf_counter() - start)
 
