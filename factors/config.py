@@ -17,8 +17,7 @@ class LandmarkConfig:
     plane_sigma_floor_rad: float = 1e-4
     """Added in quadrature to both normal components of every plane fit's sigma [rad]
     (> 0). Keep it small: the fit covariance itself (with its normal/offset correlation)
-    is the better noise model, and a large isotropic floor drowns that correlation and
-    biases the poses."""
+    is the better noise model, and a large isotropic floor drowns that correlation."""
     plane_sigma_floor_m: float = 1e-4
     """Added in quadrature to the offset sigma of every plane fit [m] (> 0)."""
     plane_correlated_depth: float = 1.0
