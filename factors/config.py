@@ -15,12 +15,11 @@ class LandmarkConfig:
     """Noise and options of the landmark factors."""
 
     plane_sigma_floor_rad: float = 1e-4
-    """Added in quadrature to both normal components of every plane fit's sigma [rad].
-    Small: the fit covariance itself (with its normal/offset correlation) is the better
-    noise model; a large isotropic floor drowns that correlation and biases the poses
-    (box_room_circle ATE 2.4 mm with 5e-3, 0.3 mm with 1e-4)."""
+    """Added in quadrature to both normal components of every plane fit's sigma [rad]
+    (> 0). Keep it small: the fit covariance itself (with its normal/offset correlation)
+    is the better noise model, and a large isotropic floor drowns that correlation."""
     plane_sigma_floor_m: float = 1e-4
-    """Added in quadrature to the offset sigma of every plane fit [m]."""
+    """Added in quadrature to the offset sigma of every plane fit [m] (> 0)."""
     plane_correlated_depth: float = 1.0
     """Sigmas of the sensor's depth error correlated across a plane added to its fit
     covariance (k^2 times `PlaneMeasurement.correlated_covariance`, from the front end's
@@ -28,10 +27,10 @@ class LandmarkConfig:
     the optimised graph's error is near its degrees of freedom on real Kinect depth
     (docs/outside_stack.md)."""
     robust_kernel: Literal["huber", "cauchy"] | None = "huber"
-    """None: the built-in OrientedPlane3Factor; 'huber' (default) / 'cauchy': the robust
-    CustomFactor (about 10x slower to linearise, 1.4x per iSAM2 update). With the fit
-    covariance as noise, a mis-segmented border makes a plane an outlier: Huber took the
-    room_boxes_loop ATE from 3.7 mm to 0.8 mm."""
+    """null: the built-in OrientedPlane3Factor; 'huber' (default) or 'cauchy': the robust
+    CustomFactor (slower to linearise: a Python factor). With the fit covariance as noise,
+    a mis-segmented border makes a plane an outlier, which the robust kernel down-weights
+    rather than letting it pull the poses."""
     robust_k: float | None = None
     """Robust threshold in whitened units (None: 1.345 Huber, 2.3849 Cauchy)."""
     corner_sigma_m: float = 0.01

@@ -10,12 +10,11 @@ import pytest
 from test_segment_merge import contents_with, edge, patch
 
 from planeslam.backend.config import BackendConfig
-from planeslam.backend.factory import create_backend
+from planeslam.backend.factory import create_backend, map_config_for
 from planeslam.core.errors import ConfigError
 from planeslam.mapping.config import MapConfig
 from planeslam.mapping.culling import cull_single_view
 from planeslam.mapping.records import MapCorner
-from planeslam.slam import map_config_for
 
 pytestmark = pytest.mark.unit
 

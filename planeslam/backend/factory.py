@@ -3,11 +3,14 @@ so the backends depend on it and not the other way round)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 from planeslam.backend.base import Backend, BackendKind
 from planeslam.backend.config import BackendConfig
 from planeslam.backend.merge import MergeBackend
 from planeslam.backend.worker import Isam2Worker
 from planeslam.core.errors import ConfigError
+from planeslam.mapping.config import MapConfig
 
 
 def create_backend(kind: BackendKind | str, config: BackendConfig) -> Backend:
@@ -20,3 +23,19 @@ def create_backend(kind: BackendKind | str, config: BackendConfig) -> Backend:
     if kind is BackendKind.MERGE:
         return MergeBackend()
     return Isam2Worker(config, inline=not config.separate_process)
+
+
+def map_config_for(config: MapConfig, backend: Backend) -> MapConfig:
+    """`config` with the settings it leaves to the backend (null) set to the backend's
+    choice (`Backend.map_cull_single_view_after`, `map_merge_segments`)."""
+    return dataclasses.replace(
+        config,
+        cull_single_view_after=(
+            backend.map_cull_single_view_after
+            if config.cull_single_view_after is None
+            else config.cull_single_view_after
+        ),
+        merge_segments=(
+            backend.map_merge_segments if config.merge_segments is None else config.merge_segments
+        ),
+    )

@@ -103,11 +103,9 @@ class LoopConfig:
     `points.every_keyframe` true in effect (every keyframe's keypoints are detected)."""
 
     enabled: bool = False
-    """Look for a loop at every keyframe (on a thread beside tracking). Off by default: on
-    7-Scenes (colour and depth not registered) the loops' relative poses are about as far
-    off the truth as the drift they would correct, and which runs they improve changes
-    with their sigmas and with the keyframe that delivers them (README, "An option since
-    the table: loop constraints" and "The loop search beside tracking")."""
+    """Look for a loop at every keyframe (on a thread beside tracking). Off by default:
+    where colour and depth are not registered to each other, a loop's relative pose can be
+    as far off as the drift it would correct."""
     skip_recent: int = 20
     """The most recent keyframes are not candidates (tracking already joins them)."""
     search_radius_m: float = 1.0
@@ -189,22 +187,19 @@ class TrackingConfig:
     size_gate_margin_m2: float = 0.1
     """See `size_gate_ratio` [m^2]."""
     weigh_unpaired: bool = False
-    """Leaving an observed plane unpaired costs its weight (inlier share) times the largest
-    cost the gates allow (`association.associate_planes`), so of two planes that fit one
-    map plane (a wall and a picture on it) the one that loses less is left out. Off, the
-    number of pairs comes first and a contested map plane goes to the lower weighted cost,
-    more often the smaller plane. On for every plane, 7-Scenes loses (3.29 -> 3.83 cm, the
-    median over seven frame rates) and TUM fr1/desk too (0.29 -> 0.40 cm): see
-    `weigh_unpaired_min_area_m2` for the planes it applies to by default (README)."""
+    """For every observed plane: leaving it unpaired costs its weight (inlier share) times
+    the largest cost the gates allow (`association.associate_planes`), so of two planes
+    that fit one map plane (a wall and a picture on it) the one that loses less is left
+    out. False: the number of pairs comes first and a contested map plane goes to the
+    lower weighted cost, more often the smaller plane; `weigh_unpaired_min_area_m2` still
+    applies to large map planes."""
     weigh_unpaired_min_area_m2: float | None = 3.0
     """`weigh_unpaired` for the observed planes that could pair with a map plane of at least
-    this area [m^2] (a wall, a floor), whatever `weigh_unpaired` says; None: for none. A
-    structure goes to the observation that loses more when left out (on ICL-NUIM a picture
-    took its wall's landmark at frame 62 and the wall became a second landmark: 1.57 cm;
-    with this 0.66), while contests over furniture and clutter, where the inlier share says
-    little about which observation is the map plane, stay count-first: on 7-Scenes over
-    seven frame rates, with 1 m^2 a median 3.98 cm, with 2 or 3 m^2 3.29, as without
-    (README)."""
+    this area [m^2] (>= 0; a wall, a floor), whatever `weigh_unpaired` says; null: for
+    none. A structure goes to the observation that loses more when left out (a wall keeps
+    its landmark rather than giving it to a picture on it), while contests over furniture
+    and clutter, where the inlier share says little about which observation is the map
+    plane, stay count-first."""
     max_outlier_rounds: int = 3
     """Rounds of dropping correspondences beyond the residual gates and solving again."""
     fast_max_gap_s: float = 0.1
@@ -213,26 +208,21 @@ class TrackingConfig:
     pose somewhat off the prediction reflects the map's own corrections, the backend
     moving planes); frames farther apart are held to `fast_max_correction_*`."""
     fast_max_jump_m: float = 0.05
-    """Within `fast_max_gap_s`, a plane pose farther than this [m] both from the prediction
-    and from the last frame's pose (the constant-velocity prediction overshoots when the
-    camera stops or turns back) ... needs the keypoints' agreement (below): at 30 Hz such
-    a jump is a plane matched to a parallel face or to another copy of a revisited wall,
-    not motion. The same as `fast_max_correction_m` by default (a close frame gets no
-    looser check than a far one). 7-Scenes at 30 Hz: 3.76 cm against 5.16 with no limit,
-    at about 2 ms more tracking per frame (mean); the prediction alone as reference: 4.34
-    cm at about 4 ms more; 10 cm / 5 deg from the prediction: 4.22 cm at hardly any cost,
-    but on the five-pass replay 1.72x the first pass's planes against 1.49x (README,
-    "Long runs")."""
+    """Within `fast_max_gap_s`, a plane pose farther than this [m] (> 0) both from the
+    prediction and from the last frame's pose (the constant-velocity prediction overshoots
+    when the camera stops or turns back) ... needs the agreement of `points.min_inliers`
+    keypoint matches: at video rate such a jump is a plane matched to a parallel face or
+    to another copy of a revisited wall, not motion. The same as `fast_max_correction_m`
+    by default (a close frame gets no looser check than a far one)."""
     fast_max_jump_deg: float = 3.0
-    """... or turned farther than this [deg]."""
+    """... or turned farther than this [deg] (> 0)."""
     weak_translation_share: float = 0.01
     """A plane pose whose weakest translation direction holds less than this share of the
-    planes' translation information (`RegistrationResult.translation_observability`) is
-    taken only where the frame's keypoints agree with it (`points.min_inliers`), however
-    near the prediction; otherwise the robust estimate over every start decides (frames
-    without keypoints: no check). 7-Scenes' frame 352 was tracked 8 cm off along an axis
-    that two planes fixed with 0.3 of their normals; 0 turns the check off (README, "Pose
-    glitches")."""
+    planes' translation information (`RegistrationResult.translation_observability`; in
+    [0, 1/3), a share of three directions) is taken only where the frame's keypoints agree
+    with it (`points.min_inliers`), however near the prediction; otherwise the robust
+    estimate over every start decides (frames without keypoints: no check). It catches a
+    pose pushed off along an axis that the planes fix only weakly; 0 turns the check off."""
     fast_max_correction_m: float = 0.05
     """Beyond `fast_max_gap_s`, the plane pose from the prediction alone (the fast path) is
     taken when it moved the prediction by at most this [m] ... Beyond it (frames far
@@ -244,49 +234,41 @@ class TrackingConfig:
     keypoint matches with the last keyframe agree with it."""
     refine_planes: bool = False
     """Refine the fast path's closed-form plane pose (whose weights are inlier counts) by
-    the robust estimate over the same planes and corners, each plane weighted by
-    its fit covariance plus the sensor's depth error correlated across its patch
+    the robust estimate over the same planes and corners, each plane weighted by its fit
+    covariance plus the sensor's depth error correlated across its patch
     (`core.plane_fit.patch_covariance`: large near planes count most, small far patches
-    little) plus `refine_floor_*`. On the TUM fr1 clips it takes out the closed form's
-    per-frame jitter (up to 5 cm along directions only small patches fix): 0.26 / 0.51 cm
-    against 1.99 / 1.45 (xyz / desk), ICL-NUIM 1.65 against 1.70 cm. The jump limit
-    (`fast_max_jump_*`) then judges the refined pose. Off by default: 7-Scenes at 30 Hz
-    gains (3.94 against 4.06 cm), every 30th frame loses (7.51 against 3.52 cm), and the
-    five-pass 7-Scenes replay (`planeslam bench long`) goes wrong from its second pass
-    (114 keyframes, 2.0x the planes after five, 7.72 cm; README, "Figures")."""
+    little) plus `refine_floor_*`; the jump limit (`fast_max_jump_*`) then judges the
+    refined pose. It takes out the closed form's per-frame jitter along directions that
+    only small patches fix. Off by default: on long runs that revisit a place and at wide
+    baselines it lets wrong poses into the map."""
     refine_floor_deg: float = 0.17
     """Normal noise added to every plane in the refinement: the map plane's and the
-    pose's own error [deg] ..."""
+    pose's own error [deg] (> 0) ..."""
     refine_floor_m: float = 0.003
-    """... and offset noise [m]."""
+    """... and offset noise [m] (> 0)."""
     refine_max_step_m: float = 0.02
-    """The refined pose is taken when it is within this of the closed-form pose [m] and
-    `refine_max_step_deg` ..., or nearer the prediction than the closed-form pose (a
+    """The refined pose is taken when it is within this of the closed-form pose [m] (> 0)
+    and `refine_max_step_deg` ..., or nearer the prediction than the closed-form pose (a
     refinement that pulls away from both rests on a wrong fit)."""
     refine_max_step_deg: float = 1.0
-    """... [deg]."""
+    """... [deg] (> 0)."""
     final_poses: bool = True
     """When the run finishes, re-estimate each frame between keyframes against the final map
     from the planes and corners it was tracked with (`tracking.final_poses`), rather than
     carrying its tracked pose rigidly by its anchor keyframe's correction. Tracking, map and
-    graph are unchanged; trajectory.txt's final poses move (2026-12-02, ATE with / without:
-    7-Scenes 3.23 / 4.06 cm, every 10th frame 3.72 / 3.86, the five-pass replay 3.89 /
-    4.56, TUM fr1/xyz 0.33 / 1.99, fr1/desk 0.29 / 1.45, ICL-NUIM 1.66 / 1.70 cm,
-    room_boxes_loop 0.7 / 1.0 mm)."""
+    graph are unchanged; only trajectory.txt's final poses move."""
     final_max_step_m: float = 0.2
     """A re-estimate farther than this from the anchored pose is not taken (a wrong
-    association, not a correction) [m] ..."""
+    association, not a correction) [m] (> 0) ..."""
     final_max_step_deg: float = 10.0
-    """... or turned farther than this [deg]."""
+    """... or turned farther than this [deg] (> 0)."""
     settle_glitches: bool = True
     """When the run finishes, find the final trajectory's pose glitches (poses beyond
     `fast_max_jump_*` off the path of the frames within 2 `fast_max_gap_s` around them and
     back, `tracking.glitches`): each is estimated again from its own planes and corners
     from the pose its good neighbours put it at, and kept within `fast_max_jump_*` of that
     pose; the others are left out of trajectory.txt as lost frames are (metrics.json
-    `pose_glitches` counts both). 7-Scenes at 30 Hz before `weak_translation_share`: 11
-    found, 5 re-estimated, 6 left out, ATE 3.10 against 3.23 cm; the five-pass replay 3.75
-    against 3.89 (with it: none at 30 Hz, a few per pass on the replay; README)."""
+    `pose_glitches` counts both)."""
     relocalise: bool = True
     """Search the whole map (corner, plane-triple, edge and keypoint hypotheses) when
     nothing near the prediction fits."""

@@ -20,12 +20,14 @@ one consistent world, and a joined segment's frames hang on the joining keyframe
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
 from planeslam.core.geometry import invert_pose
+from planeslam.core.types import TrackingPath
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.tracker import Tracker, TrackResult
@@ -105,3 +107,73 @@ class Segment:
             self._last_keyframe = T
             self.tracker.add_keyframe(index, T, rgb, observation.cloud, result.keypoints)
         return T
+
+
+class Segments:
+    """The segment open since the last loss, if any, beside the map's tracker: a lost frame
+    starts one; while one is open, every frame is tracked in it too, until a frame placed in
+    the map joins it (module docstring)."""
+
+    def __init__(
+        self,
+        tracker: Tracker,
+        config: TrackingConfig,
+        camera: CameraConfig | None,
+        sensor: DepthNoiseConfig | None,
+        seed: int = 0,
+    ) -> None:
+        """`tracker`: the map's; a segment starting at frame k draws from `seed` + k."""
+        self.tracker = tracker
+        self.config = config
+        self.camera = camera
+        self.sensor = sensor
+        self.seed = seed
+        self.open: Segment | None = None
+        """The segment tracking since the last loss, until it joins the map."""
+
+    def step(
+        self,
+        index: int,
+        observation: FrameObservation,
+        rgb: np.ndarray | None,
+        depth_m: np.ndarray,
+        track: TrackResult,
+    ) -> tuple[TrackResult, Segment | None]:
+        """Frame `index` ((H, W) depth [m]) in the open segment, given the map tracker's
+        `track` of it. Returns the frame's result (its reason says which segment holds a
+        lost frame) and the segment it joins to the map, if any."""
+        segment = self.open
+        T_seg = segment.track(index, observation, rgb, depth_m) if segment is not None else None
+        if not track.lost and segment is not None and T_seg is not None:
+            if track.path is TrackingPath.RELOCALISED and not segment.confirms(
+                track.T_world_cam, T_seg
+            ):
+                # One frame's whole-map search does not place a segment (a symmetric scene
+                # offers a half-turn-wrong place): the next relocalisation must agree.
+                self.tracker.prediction_valid = False
+                note = f"relocalised; the segment since frame {segment.first} waits for a second"
+                lost = dataclasses.replace(track, path=TrackingPath.LOST)
+                return dataclasses.replace(lost, reason=f"{track.reason}; {note}"), None
+            self.open = None
+            return track, segment
+        if not track.lost:
+            self.open = None
+            return track, None
+        if T_seg is None:  # the segment lost it too (or there is none): one starts here
+            self.open = Segment(
+                index,
+                observation,
+                rgb,
+                depth_m,
+                self.config,
+                self.camera,
+                self.sensor,
+                self.seed + index,
+                track,
+                self.tracker.odometry,
+            )
+            note = "a new segment starts here"
+        else:
+            assert segment is not None
+            note = f"tracked in the segment since frame {segment.first}, not joined yet"
+        return dataclasses.replace(track, reason=f"{track.reason}; {note}"), None

@@ -17,8 +17,9 @@ keyframe takes its optimised pose, the planes and corners it saw move onto their
 landmarks, and the pose tracked since moves by the keyframe's correction; map planes that
 came to lie on one segment then merge (`Map.merge_same_segments`), and the next keyframe
 takes those joins to the graph. Every frame's pose is re-anchored on the final pose of
-its anchor: the keyframe nearest to it in pose (on a revisit, the keyframe made there
-before rather than the last one, which may be hundreds of frames back).
+its anchor (`planeslam.slam.anchors`): the keyframe nearest to it in pose (on a revisit,
+the keyframe made there before rather than the last one, which may be hundreds of frames
+back).
 
 `SLAM.process(depth_m, timestamp, rgb)` needs no dataset folder (live cameras, other
 sources); `run_frames` drives it over an `RgbdDataset` (folder or bag). Poses are
@@ -31,15 +32,11 @@ backend process.
 
 from __future__ import annotations
 
-import concurrent.futures
-import contextlib
-import dataclasses
 import logging
 import time
 import weakref
-from collections.abc import Callable, Iterable, Mapping
-from contextlib import AbstractContextManager
-from dataclasses import dataclass, field
+from collections.abc import Iterable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -51,10 +48,9 @@ from planeslam.backend.base import (
     KeyframeInput,
     KeyframeUpdate,
 )
-from planeslam.backend.factory import create_backend
-from planeslam.backend.keyframes import nearest_keyframe
+from planeslam.backend.factory import create_backend, map_config_for
 from planeslam.config import PlaneSlamConfig
-from planeslam.core.errors import ConfigError, DatasetFormatError, FrameReadError, PlaneSlamError
+from planeslam.core.errors import ConfigError, DatasetFormatError, PlaneSlamError
 from planeslam.core.frame_checks import check_depth_units, check_rgb, clean_depth
 from planeslam.core.geometry import (
     as_pose,
@@ -63,22 +59,18 @@ from planeslam.core.geometry import (
     orthonormalize_pose,
     transform_points,
 )
-from planeslam.core.native_tuning import single_native_threads
 from planeslam.core.types import LoopConstraint, RelativePose, TrackingPath
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
-from planeslam.io.dataset import Frame
-from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import Trajectory
-from planeslam.mapping.config import MapConfig
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
-from planeslam.tracking.estimator import PoseConstraints
-from planeslam.tracking.final_poses import FrameTerms, final_poses
-from planeslam.tracking.glitches import PoseGlitches, find_pose_glitches, reestimate_glitches
+from planeslam.slam.anchors import AnchoredPoses, FinalMap
+from planeslam.slam.records import FrameResult
+from planeslam.tracking.glitches import PoseGlitches
 from planeslam.tracking.keypoints import Keypoints
 from planeslam.tracking.loops import LoopOutcome, LoopSearch
 from planeslam.tracking.odometry import RgbdOdometry
-from planeslam.tracking.segments import Segment
+from planeslam.tracking.segments import Segment, Segments
 from planeslam.tracking.tracker import MapView, Tracker, TrackResult
 
 logger = logging.getLogger(__name__)
@@ -107,62 +99,6 @@ class _PendingKeyframe:
     index: int
     plane_ids: tuple[int, ...]
     corner_ids: tuple[int, ...]
-
-
-@dataclass(frozen=True)
-class FrameResult:
-    """What SLAM made of one frame."""
-
-    index: int
-    """Position of the frame in the processed sequence (0, 1, ...)."""
-    timestamp: float
-    """[s]"""
-    T_world_cam: np.ndarray
-    """(4, 4) pose estimated online (before later optimisation)."""
-    path: TrackingPath
-    """How the pose was found."""
-    reason: str
-    """Why tracking needed a fallback or lost the frame; '' otherwise."""
-    keyframe: bool
-    """Whether the frame went into the map (merge) or the graph (isam2)."""
-    observation: FrameObservation = field(repr=False)
-    stage_ms: dict[str, float] = field(default_factory=dict)
-    """Wall-clock ms per stage: the front end's, then tracking, map, backend."""
-    rgb: np.ndarray | None = field(default=None, repr=False)
-    """(H, W, 3) uint8 colour image as given to `process` (not copied), or None."""
-    constraints: PoseConstraints | None = None
-    """Which degrees of freedom the planes fixed and what fixed the rest (None: first or
-    lost frame)."""
-    anchor: int | None = None
-    """The keyframe (its `index`) whose final pose this frame's pose follows in
-    `SLAM.trajectory`: the frame itself if a keyframe, else the keyframe nearest in pose
-    (None: lost before any keyframe)."""
-    pose_covariance: np.ndarray | None = None
-    """(6, 6) covariance of `T_world_cam` in its tangent space (gtsam's Pose3 order,
-    rotation [rad^2] first, then translation [m^2]): a keyframe's backend marginal once
-    its update is in, else the latest keyframe marginal moved to this frame with one
-    tracking step's noise (the backend's `odometry_sigma_*`). None without a graph
-    (merge backend), before the first update, and for lost frames."""
-
-    @property
-    def lost(self) -> bool:
-        return self.path is TrackingPath.LOST
-
-    def to_record(self) -> dict[str, Any]:
-        """One line of frames.jsonl."""
-        return {
-            "index": self.index,
-            "timestamp": self.timestamp,
-            "path": self.path.value,
-            "reason": self.reason,
-            "keyframe": self.keyframe,
-            "planes": len(self.observation.segmentation.planes),
-            "corners": len(self.observation.structure.corners),
-            "frontend_reason": self.observation.reason,
-            "stage_ms": {k: round(v, 3) for k, v in self.stage_ms.items()},
-            "constraints": None if self.constraints is None else self.constraints.to_record(),
-            "anchor": self.anchor,
-        }
 
 
 class SLAM:
@@ -208,22 +144,10 @@ class SLAM:
         """Stops the backend process when the SLAM is closed, finished or dropped."""
         self._finished = False
         self._T_world_first = _first_pose(config, T_world_first)
-        self._stamps: list[float] = []
-        self._anchor: list[int] = []
-        """Per frame: the keyframe (frame index) its pose is expressed against."""
-        self._T_anchor_cam: list[np.ndarray] = []
-        """Per frame: pose relative to its anchor keyframe's online pose."""
-        self._keyframe_online: dict[int, np.ndarray] = {}
-        """Keyframe pose when it was added (tracked, or optimised by its own update)."""
-        self._keyframe_array: np.ndarray | None = None
-        """`_keyframe_online` as one (K, 4, 4) array, rebuilt after a change."""
+        self.poses = AnchoredPoses(config.backend)
+        """Every frame's pose on its anchor keyframe, and the keyframes' poses."""
         self._map_view: tuple[int, MapView] | None = None
         """(map revision, its view) of the last `map_view`."""
-        self._keyframe_final: dict[int, np.ndarray] = {}
-        """Keyframe pose after the last optimisation (`finish`); the online one until then."""
-        self._frame_terms: dict[int, FrameTerms] = {}
-        """Per tracked frame between keyframes: the planes and corners its pose rests on, for
-        its re-estimate against the final map (`tracking.final_poses`)."""
         self.final_poses: dict[str, float] = {}
         """After `finish`: frames between keyframes re-estimated against the final map
         ('reestimated'), left at their anchored pose ('kept') and the wall-clock 'ms'."""
@@ -231,7 +155,6 @@ class SLAM:
         """After `finish` (`tracking.settle_glitches`): the final trajectory's pose glitches
         ('found', their 'found_timestamps' [s]), those re-estimated from their neighbours'
         path ('re_estimated') and those left out as lost ('left_out')."""
-        self._last_keyframe: int | None = None
         self._merged_frames: dict[int, int] = {}
         """Map merge number (`MapPlane.seen_in`) -> the frame index merged."""
         self._odometry_since_keyframe: RelativePose | None = None
@@ -243,9 +166,9 @@ class SLAM:
         self._velocity = np.eye(4)
         """Last motion T_prev_cur of tracked frames (constant-velocity prediction)."""
         self._last_tracked: np.ndarray | None = None
-        self._tracked: list[bool] = []
-        """Per frame: whether it has a pose (False: lost, or in a segment not joined yet)."""
-        self._segment: Segment | None = None
+        self.segments = Segments(
+            self.tracker, config.tracking, config.camera, config.sensor, config.run.seed
+        )
         """The segment tracking since the last loss, until it joins the map."""
         self._pending: _PendingKeyframe | None = None
         self._joined_planes: list[tuple[int, int]] = []
@@ -295,7 +218,7 @@ class SLAM:
 
     @property
     def frames(self) -> int:
-        return len(self._stamps)
+        return len(self.poses)
 
     def predicted_pose(self) -> np.ndarray:
         """(4, 4) T_world_cam of the next frame under constant velocity."""
@@ -311,20 +234,10 @@ class SLAM:
         return self._map_view[1]
 
     def _is_keyframe(self, T_world_cam: np.ndarray, new_planes: int) -> bool:
-        if self._last_keyframe is None:
+        if self.poses.last_keyframe is None:
             return True
-        since = self.frames - self._last_keyframe
-        return self.backend.is_keyframe(self._keyframe_poses(), T_world_cam, since, new_planes)
-
-    def _keyframe_poses(self) -> np.ndarray:
-        """(K, 4, 4) online keyframe poses, increasing frame index (the last one last)."""
-        if self._keyframe_array is None:
-            self._keyframe_array = np.asarray(list(self._keyframe_online.values()))
-        return self._keyframe_array
-
-    def _set_keyframe_online(self, index: int, T_world_cam: np.ndarray) -> None:
-        self._keyframe_online[index] = T_world_cam
-        self._keyframe_array = None
+        since = self.frames - self.poses.last_keyframe
+        return self.backend.is_keyframe(self.poses.keyframe_poses(), T_world_cam, since, new_planes)
 
     # -------------------------------------------------------------------------- frames
 
@@ -371,7 +284,7 @@ class SLAM:
 
         t0 = time.perf_counter()
         T_pred = self.predicted_pose()
-        if step is not None and self._last_tracked is not None and self._tracked[-1]:
+        if step is not None and self._last_tracked is not None and self.poses.is_tracked(-1):
             T_pred = self._last_tracked @ step.T_a_b
         self._odometry_since_keyframe = (
             None
@@ -389,8 +302,10 @@ class SLAM:
                 observation, self.map_view(), T_pred, rgb, depth_m, self._last_tracked
             )
         joined = None
-        if valid and (self._segment is not None or (track.lost and self.config.tracking.segments)):
-            track, joined = self._segment_step(index, observation, rgb, depth_m, track)
+        if valid and (
+            self.segments.open is not None or (track.lost and self.config.tracking.segments)
+        ):
+            track, joined = self.segments.step(index, observation, rgb, depth_m, track)
         T_world_cam = orthonormalize_pose(track.T_world_cam)
         stage_ms["tracking"] = 1e3 * (time.perf_counter() - t0)
 
@@ -402,9 +317,7 @@ class SLAM:
                     index, timestamp, observation, track, rgb, stage_ms, keypoints
                 )
             self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, keypoints)
-        self._remember(index, timestamp, T_world_cam, keyframe, track.lost)
-        if track.terms is not None and not (keyframe or track.lost):
-            self._frame_terms[index] = track.terms
+        self._remember(timestamp, T_world_cam, keyframe, track)
         if joined is not None:
             self._join(index, joined)
         self.pointcloud_bytes += POINT_BYTES * int(valid)
@@ -421,7 +334,7 @@ class SLAM:
             stage_ms=stage_ms,
             rgb=rgb,
             constraints=track.constraints,
-            anchor=self._anchor[-1] if self._anchor[-1] >= 0 else None,
+            anchor=self.poses.anchor(index),
             pose_covariance=None if track.lost else self._pose_covariance(T_world_cam),
         )
 
@@ -441,11 +354,11 @@ class SLAM:
         data["keyframes"] = [
             {
                 "index": k,
-                "timestamp": self._stamps[k],
+                "timestamp": self.poses.timestamps[k],
                 "merge": merge_of.get(k),
                 "T_world_cam": np.asarray(T, dtype=np.float64).tolist(),
             }
-            for k, T in sorted(self._keyframe_final.items())
+            for k, T in self.poses.final_keyframes()
         ]
         return data
 
@@ -456,7 +369,7 @@ class SLAM:
         if self._last_covariance is None:
             return None
         index, cov = self._last_covariance
-        T_key_cam = invert_pose(self._keyframe_online[index]) @ T_world_cam
+        T_key_cam = invert_pose(self.poses.online(index)) @ T_world_cam
         if np.allclose(T_key_cam, np.eye(4), atol=1e-12):
             return cov.copy()
         cfg = self.config.backend
@@ -473,73 +386,19 @@ class SLAM:
             ) from None
         if not np.isfinite(t):
             raise DatasetFormatError(f"timestamp {timestamp!r} is not a finite number of seconds")
-        if self._stamps and not t > self._stamps[-1]:
+        stamps = self.poses.timestamps
+        if stamps and not t > stamps[-1]:
             raise DatasetFormatError(
-                f"timestamp {t:.6f} s is not after the previous frame's {self._stamps[-1]:.6f} s "
+                f"timestamp {t:.6f} s is not after the previous frame's {stamps[-1]:.6f} s "
                 "(frames must come in increasing time order)"
             )
         return t
-
-    def _segment_step(
-        self,
-        index: int,
-        observation: FrameObservation,
-        rgb: np.ndarray | None,
-        depth_m: np.ndarray,
-        track: TrackResult,
-    ) -> tuple[TrackResult, Segment | None]:
-        """Segments (`planeslam.tracking.segments`): a lost frame starts one; while one is
-        open, every frame is tracked in it too. Returns the frame's result (its reason says
-        which segment holds a lost frame) and the segment it joins to the map, if any."""
-        tracking = self.config.tracking
-        segment = self._segment
-        T_seg = segment.track(index, observation, rgb, depth_m) if segment is not None else None
-        if not track.lost and segment is not None and T_seg is not None:
-            if track.path is TrackingPath.RELOCALISED and not segment.confirms(
-                track.T_world_cam, T_seg
-            ):
-                # One frame's whole-map search does not place a segment (a symmetric scene
-                # offers a half-turn-wrong place): the next relocalisation must agree.
-                self.tracker.prediction_valid = False
-                note = f"relocalised; the segment since frame {segment.first} waits for a second"
-                lost = dataclasses.replace(track, path=TrackingPath.LOST)
-                return dataclasses.replace(lost, reason=f"{track.reason}; {note}"), None
-            self._segment = None
-            return track, segment
-        if not track.lost:
-            self._segment = None
-            return track, None
-        if T_seg is None:  # the segment lost it too (or there is none): one starts here
-            seed = self.config.run.seed + index
-            self._segment = Segment(
-                index,
-                observation,
-                rgb,
-                depth_m,
-                tracking,
-                self.config.camera,
-                self.config.sensor,
-                seed,
-                track,
-                self.tracker.odometry,
-            )
-            note = "a new segment starts here"
-        else:
-            assert segment is not None
-            note = f"tracked in the segment since frame {segment.first}, not joined yet"
-        return dataclasses.replace(track, reason=f"{track.reason}; {note}"), None
 
     def _join(self, index: int, segment: Segment) -> None:
         """Frame `index` relocalised in the map and tracked in `segment`: every frame of the
         segment gets a pose, anchored where frame `index` is (so later corrections move
         them with it)."""
-        anchor, T_anchor_join = self._anchor[index], self._T_anchor_cam[index]
-        T_join_seg = invert_pose(segment.poses[index])
-        for k, T_seg_cam in segment.poses.items():
-            if k < index:
-                self._anchor[k] = anchor
-                self._T_anchor_cam[k] = T_anchor_join @ T_join_seg @ T_seg_cam
-                self._tracked[k] = True
+        self.poses.join(index, segment.poses)
         logger.info(
             "segment of frames %d-%d joined the map at frame %d (%d frames tracked in it)",
             segment.first,
@@ -599,11 +458,11 @@ class SLAM:
         t0 = time.perf_counter()
         T_prev_cam = None  # measured motion since the last keyframe
         relocalised = False  # ... or none: placed by a whole-map search, or frames lost since
-        if self._last_keyframe is not None:
-            T_prev_cam = invert_pose(self._keyframe_online[self._last_keyframe]) @ T_world_cam
-            relocalised = track.path is TrackingPath.RELOCALISED or not all(
-                self._tracked[self._last_keyframe + 1 :]
-            )
+        last = self.poses.last_keyframe
+        if last is not None:
+            T_prev_cam = invert_pose(self.poses.online(last)) @ T_world_cam
+            lost_since = not self.poses.tracked_since(last)
+            relocalised = track.path is TrackingPath.RELOCALISED or lost_since
         self.backend.submit(
             KeyframeInput(
                 index=index,
@@ -620,13 +479,13 @@ class SLAM:
             )
         )
         self._joined_planes = []
-        self._set_keyframe_online(index, T_world_cam)
+        self.poses.set_online(index, T_world_cam)
         self._pending = _PendingKeyframe(
             index, tuple(merged.planes.values()), tuple(merged.corners.values())
         )
         if self.backend.lag_frames == 0:
             self._apply_update(self.backend.collect(), move_last_tracked=False)
-            T_world_cam = self._keyframe_online[index]
+            T_world_cam = self.poses.online(index)
         stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         return T_world_cam
 
@@ -667,11 +526,9 @@ class SLAM:
             "backend updates come back in submission order"
         )
         self._pending = None
-        correction = update.T_world_cam @ invert_pose(self._keyframe_online[pending.index])
-        self._set_keyframe_online(pending.index, update.T_world_cam)
+        correction = self.poses.optimised(pending.index, update.T_world_cam)
         self.tracker.move_keyframe(pending.index, update.T_world_cam)
         self.tracker.correct_previous(correction)
-        self._keyframe_final[pending.index] = update.T_world_cam
         if update.covariance is not None:
             self._last_covariance = (pending.index, update.covariance)
         self.map.apply_estimates(
@@ -710,33 +567,21 @@ class SLAM:
         colors = None if rgb is None else np.asarray(rgb)[::s, ::s][keep]
         self.map.add_sparse_points(points, colors)
 
-    def _remember(self, index, timestamp, T_world_cam, keyframe, lost) -> None:
-        if not lost:
+    def _remember(
+        self,
+        timestamp: float,
+        T_world_cam: np.ndarray,
+        keyframe: bool,
+        track: TrackResult,
+    ) -> None:
+        if not track.lost:
             if self._last_tracked is not None:
-                gap = self._tracked and not self._tracked[-1]  # no velocity across lost frames
+                gap = not self.poses.is_tracked(-1)  # no velocity across lost frames
                 self._velocity = np.eye(4) if gap else invert_pose(self._last_tracked) @ T_world_cam
             self._last_tracked = T_world_cam
-        self._tracked.append(not lost)
-        if keyframe:  # the first frame always is one, so every frame has an anchor
-            self._last_keyframe = index
+        if keyframe:
             self._odometry_since_keyframe = RelativePose.identity()
-            self._set_keyframe_online(index, T_world_cam)
-            self._keyframe_final[index] = T_world_cam
-        anchor = self._anchor_of(T_world_cam, keyframe, lost)
-        assert anchor is not None or lost, "the first tracked frame is always a keyframe"
-        self._stamps.append(float(timestamp))
-        self._anchor.append(-1 if anchor is None else anchor)  # -1: lost before any keyframe
-        T_anchor = np.eye(4) if anchor is None else self._keyframe_online[anchor]
-        self._T_anchor_cam.append(invert_pose(T_anchor) @ T_world_cam)
-
-    def _anchor_of(self, T_world_cam: np.ndarray, keyframe: bool, lost: bool) -> int | None:
-        """The keyframe (frame index) whose final pose a frame's pose at T_world_cam (4, 4)
-        will follow: a keyframe itself, a tracked frame the keyframe nearest in pose
-        (`nearest_keyframe`), a lost frame the last keyframe; None before any keyframe."""
-        if keyframe or lost or len(self._keyframe_online) < 2:
-            return self._last_keyframe
-        indices = list(self._keyframe_online)
-        return indices[nearest_keyframe(self.config.backend, self._keyframe_poses(), T_world_cam)]
+        self.poses.add(timestamp, T_world_cam, keyframe, track.lost, track.terms)
 
     def finish(self) -> float:
         """End of the sequence: the backend's final optimisation (iSAM2: a batch over the
@@ -757,99 +602,19 @@ class SLAM:
             result = self.backend.finish()
         finally:
             self._stop_backend()
-        self._keyframe_final.update(result.keyframe_poses)
+        self.poses.set_final(result.keyframe_poses)
         for index, T_world_cam in result.keyframe_poses.items():
             self.tracker.move_keyframe(index, T_world_cam)  # keypoints follow the final map
         if not self.localize:
             self.map.apply_estimates(result.planes, result.corners)
-        terms, self._frame_terms = self._frame_terms, {}
-        self._reestimate_frames(terms)
-        self._settle_glitches(terms)
+        cfg = self.config.tracking
+        if cfg.final_poses or cfg.settle_glitches:
+            final = FinalMap(
+                self.map_view(), self.tracker.refine_settings, self.tracker.thresholds, cfg
+            )
+            self.final_poses, self.settled_glitches = self.poses.settle(final)
         self.backend_result = result
         return 1e3 * (time.perf_counter() - start)
-
-    def _reestimate_frames(self, terms: Mapping[int, FrameTerms]) -> None:
-        """Each tracked frame between keyframes re-estimated against the final map from the
-        planes and corners it was tracked with (`terms`, by frame; `tracking.final_poses`);
-        a frame the map does not fix keeps its pose anchored on its keyframe."""
-        if not self.config.tracking.final_poses:
-            return
-        start = time.perf_counter()
-        frames = {
-            k: (frame_terms, self._keyframe_final[self._anchor[k]] @ self._T_anchor_cam[k])
-            for k, frame_terms in terms.items()
-        }
-        cfg = self.config.tracking
-        found = final_poses(
-            frames,
-            self.map_view(),
-            self.tracker.refine_settings,
-            self.tracker.thresholds,
-            cfg.sigma_point_m,
-            cfg.final_max_step_m,
-            cfg.final_max_step_deg,
-        )
-        for k, T_world_cam in found.items():
-            self._set_final_pose(k, T_world_cam)
-        self.final_poses = {
-            "reestimated": len(found),
-            "kept": len(frames) - len(found),
-            "ms": 1e3 * (time.perf_counter() - start),
-        }
-        logger.info(
-            "final map: %d of %d frames between keyframes re-estimated in %.0f ms",
-            len(found),
-            len(frames),
-            self.final_poses["ms"],
-        )
-
-    def _set_final_pose(self, index: int, T_world_cam: np.ndarray) -> None:
-        """Frame `index` takes T_world_cam (4, 4) in the final map, kept relative to its
-        anchor keyframe's final pose."""
-        self._T_anchor_cam[index] = invert_pose(self._keyframe_final[self._anchor[index]]) @ (
-            T_world_cam
-        )
-
-    def _settle_glitches(self, terms: Mapping[int, FrameTerms]) -> None:
-        """The final trajectory's pose glitches (`tracking.settle_glitches`): each frame with
-        `terms` (by frame) that they fix from the pose its good neighbours put it at takes
-        that estimate; the others are left out as lost."""
-        cfg = self.config.tracking
-        if not cfg.settle_glitches:
-            return
-        trajectory = self.trajectory()
-        found = self.pose_glitches(trajectory)
-        frames = [k for k, tracked in enumerate(self._tracked) if tracked]  # row -> frame
-        poses = reestimate_glitches(
-            trajectory,
-            found.rows.tolist(),
-            {int(r): terms[frames[r]] for r in found.rows if frames[r] in terms},
-            self.map_view(),
-            self.tracker.refine_settings,
-            self.tracker.thresholds,
-            cfg.sigma_point_m,
-            found.max_span_s,
-            cfg.fast_max_jump_m,
-            cfg.fast_max_jump_deg,
-        )
-        for row in found.rows.tolist():
-            if row in poses:
-                self._set_final_pose(frames[row], poses[row])
-            else:
-                self._tracked[frames[row]] = False
-        self.settled_glitches = {
-            "found": len(found),
-            "found_timestamps": [round(float(t), 6) for t in found.timestamps],
-            "re_estimated": len(poses),
-            "left_out": len(found) - len(poses),
-        }
-        if len(found):
-            logger.info(
-                "final trajectory: %d pose glitches, %d re-estimated, %d left out",
-                len(found),
-                len(poses),
-                len(found) - len(poses),
-            )
 
     # -------------------------------------------------------------------------- results
 
@@ -857,98 +622,17 @@ class SLAM:
         """The glitches of `trajectory` (default: this run's) under tracking's jump limits:
         poses beyond `fast_max_jump_*` off the path of the frames within 2 `fast_max_gap_s`
         around them (`tracking.glitches.find_pose_glitches`)."""
-        cfg = self.config.tracking
-        return find_pose_glitches(
-            self.trajectory() if trajectory is None else trajectory,
-            2.0 * cfg.fast_max_gap_s,
-            cfg.fast_max_jump_m,
-            cfg.fast_max_jump_deg,
-        )
+        return self.poses.glitches(self.config.tracking, trajectory)
 
     @property
     def tracked_frames(self) -> int:
         """Frames with a pose (every processed frame but the lost ones)."""
-        return int(sum(self._tracked))
+        return self.poses.tracked_frames
 
     def trajectory(self) -> Trajectory:
         """Every tracked frame's pose, each re-anchored on its optimised keyframe; lost
         frames are left out (as ORB-SLAM does)."""
-        rows = [k for k, tracked in enumerate(self._tracked) if tracked]
-        poses = [self._keyframe_final[self._anchor[k]] @ self._T_anchor_cam[k] for k in rows]
-        return Trajectory(
-            timestamps=np.asarray(self._stamps, dtype=np.float64)[rows],
-            T_world_cam=np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4),
-        )
-
-
-@dataclass(frozen=True)
-class RunSummary:
-    """Counts and timings of `run_frames`."""
-
-    frames: int
-    seconds: float
-    """Wall-clock seconds of processing (frame reading included, start-up excluded)."""
-    lost_frames: int
-    keyframes: int
-    paths: dict[str, int]
-    """Tracking path -> number of frames."""
-    frame_timings: list[dict[str, float]] = field(repr=False)
-    """Per frame {stage: ms}."""
-    finish_ms: float = 0.0
-    """`SLAM.finish` (final batch optimisation), included in `seconds`."""
-    skipped_frames: int = 0
-    """Frames left out because an image could not be read (FrameReadError)."""
-
-
-@dataclass
-class RunTally:
-    """What `run_frames` has done so far. A caller that passes its own keeps the counts of
-    a run that is interrupted or fails: `summary()` then describes the frames until then."""
-
-    start: float = field(default_factory=time.perf_counter)
-    """`time.perf_counter()` when processing started."""
-    frame_timings: list[dict[str, float]] = field(default_factory=list)
-    """Per processed frame {stage: ms}, 'read' first."""
-    paths: dict[str, int] = field(default_factory=dict)
-    lost_frames: int = 0
-    keyframes: int = 0
-    skipped_frames: int = 0
-    finish_ms: float = 0.0
-
-    def add(self, result: FrameResult, read_ms: float) -> None:
-        self.frame_timings.append({"read": read_ms, **result.stage_ms})
-        self.paths[result.path.value] = self.paths.get(result.path.value, 0) + 1
-        self.lost_frames += result.lost
-        self.keyframes += result.keyframe
-
-    def summary(self) -> RunSummary:
-        """The counts, with the seconds since `start`."""
-        return RunSummary(
-            frames=len(self.frame_timings),
-            seconds=time.perf_counter() - self.start,
-            lost_frames=self.lost_frames,
-            keyframes=self.keyframes,
-            paths=dict(self.paths),
-            frame_timings=list(self.frame_timings),
-            finish_ms=self.finish_ms,
-            skipped_frames=self.skipped_frames,
-        )
-
-
-def map_config_for(config: MapConfig, backend: Backend) -> MapConfig:
-    """`config` with the settings it leaves to the backend (null) set to the backend's
-    choice (`Backend.map_cull_single_view_after`, `map_merge_segments`)."""
-    return dataclasses.replace(
-        config,
-        cull_single_view_after=(
-            backend.map_cull_single_view_after
-            if config.cull_single_view_after is None
-            else config.cull_single_view_after
-        ),
-        merge_segments=(
-            backend.map_merge_segments if config.merge_segments is None else config.merge_segments
-        ),
-    )
+        return self.poses.trajectory()
 
 
 def map_view(world_map: Map) -> MapView:
@@ -988,37 +672,6 @@ def map_view(world_map: Map) -> MapView:
     )
 
 
-def frame_indices(num_frames: int, max_frames: int | None, every: int) -> list[int]:
-    """Every `every`-th frame index, at most `max_frames` of them."""
-    if every < 1:
-        raise ConfigError(f"every must be >= 1 (take every n-th frame), got {every}")
-    if max_frames is not None and max_frames < 1:
-        raise ConfigError(f"max_frames must be >= 1 or None, got {max_frames}")
-    return list(range(0, num_frames, every))[:max_frames]
-
-
-def slam_for_dataset(
-    config: PlaneSlamConfig,
-    dataset: RgbdDataset,
-    first_index: int,
-    backend: BackendKind | str | None = None,
-    seed: int | None = None,
-) -> SLAM:
-    """A SLAM starting at frame `first_index` as `run.start_pose` says: 'groundtruth' at its
-    ground-truth pose (the identity without ground truth), so the estimates and the truth
-    share the world frame and compare pose by pose; 'identity' at the identity."""
-    T_world_first = None
-    if config.run.start_pose == "groundtruth":
-        T_world_first = dataset.groundtruth_pose(dataset.timestamps[first_index])
-    known = T_world_first is not None and dataset.groundtruth is not None
-    logger.info(
-        "start pose (run.start_pose %s): %s",
-        config.run.start_pose,
-        "the first frame's ground truth" if known else "the identity",
-    )
-    return SLAM(config, backend, T_world_first=T_world_first, seed=seed)
-
-
 def _first_pose(config: PlaneSlamConfig, T_world_first: np.ndarray | Any | None) -> np.ndarray:
     """The first frame's pose (4, 4) under `run.start_pose`."""
     if T_world_first is None:
@@ -1029,62 +682,3 @@ def _first_pose(config: PlaneSlamConfig, T_world_first: np.ndarray | Any | None)
             "'groundtruth' to start at that pose, or pass no T_world_first"
         )
     return as_pose(T_world_first, "T_world_first", ConfigError)
-
-
-def _read(dataset: RgbdDataset, index: int) -> tuple[Frame, float]:
-    t0 = time.perf_counter()
-    frame = dataset[index]
-    return frame, 1e3 * (time.perf_counter() - t0)
-
-
-def run_frames(
-    slam: SLAM,
-    dataset: RgbdDataset,
-    indices: Iterable[int],
-    on_result: Callable[[FrameResult], None] | None = None,
-    tally: RunTally | None = None,
-    guard: Callable[[], AbstractContextManager[object]] | None = None,
-) -> RunSummary:
-    """Feed `dataset[i]` for i in `indices` to `slam`; `on_result` sees every FrameResult as
-    it comes (write it out there: an interrupted run then keeps what it did), `tally` (when
-    given) the counts so far. Each frame is processed, counted and passed to `on_result`
-    inside `guard()` when given (an application's deferral of Ctrl-C: a frame is then
-    wholly done and reported, or not begun). The next frame is read on a second thread
-    while this one is processed; the 'read' stage is the reader's time, which overlaps
-    processing. A frame whose image cannot be read (FrameReadError) is skipped with a
-    warning; DatasetFormatError when no frame can be read."""
-    tally = RunTally() if tally is None else tally
-    tally.start = time.perf_counter()
-    indices = list(indices)
-    # Frames are read (PNG decoding releases the GIL) one ahead on a second thread.
-    try:
-        with (
-            single_native_threads(),
-            concurrent.futures.ThreadPoolExecutor(max_workers=1) as reader,
-        ):
-            upcoming = [reader.submit(_read, dataset, indices[0])] if indices else []
-            for k in range(len(indices)):
-                future = upcoming.pop()
-                if k + 1 < len(indices):
-                    upcoming.append(reader.submit(_read, dataset, indices[k + 1]))
-                try:
-                    frame, read_ms = future.result()
-                except FrameReadError as exc:
-                    tally.skipped_frames += 1
-                    logger.warning("frame %d skipped: %s", indices[k], exc)
-                    continue
-                with guard() if guard is not None else contextlib.nullcontext():
-                    result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
-                    tally.add(result, read_ms)
-                    if on_result is not None:
-                        on_result(result)
-        if indices and not tally.frame_timings:
-            raise DatasetFormatError(
-                f"{dataset.root}: none of the {len(indices)} frames could be read "
-                "(each was skipped: its images are missing or cannot be decoded)"
-            )
-        tally.finish_ms = slam.finish()
-    except BaseException:  # interrupted or failed: stop the backend, keep the map as it is
-        slam.close()
-        raise
-    return tally.summary()
