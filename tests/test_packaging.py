@@ -58,6 +58,8 @@ def test_wheel_contains_and_imports_the_subpackages(tmp_path: Path) -> None:
         "planeslam/schemas/metrics.schema.json",
     ):
         assert required in names
+    for package in (REPO / "planeslam").rglob("__init__.py"):  # every sub-package listed
+        assert package.relative_to(REPO).as_posix() in names
     assert not any(n.startswith(("factors/", "eval/", "tests/")) for n in names)
     site = tmp_path / "site"
     zipfile.ZipFile(wheel).extractall(site)
