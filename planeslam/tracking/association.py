@@ -272,7 +272,7 @@ def associate_planes(
     the largest cost the gates allow instead: two planes that both fit one map
     plane (a wall and a picture hanging on it) leave out the one that loses
     less, so a small plane does not take a large one's partner because its
-    weighted cost is lower (`TrackingConfig.weigh_unpaired`). `weigh_unpaired`
+    weighted cost is lower. `weigh_unpaired`
     (M,) bool instead of True: only the observed planes the gates allow to pair with
     one of the selected map planes (walls and floors:
     `TrackingConfig.weigh_unpaired_min_area_m2`) are weighed so; the others pair

@@ -186,20 +186,15 @@ class TrackingConfig:
     most size_gate_ratio * A + size_gate_margin_m2 (a floor never matches a box top)."""
     size_gate_margin_m2: float = 0.1
     """See `size_gate_ratio` [m^2]."""
-    weigh_unpaired: bool = False
-    """For every observed plane: leaving it unpaired costs its weight (inlier share) times
-    the largest cost the gates allow (`association.associate_planes`), so of two planes
-    that fit one map plane (a wall and a picture on it) the one that loses less is left
-    out. False: the number of pairs comes first and a contested map plane goes to the
-    lower weighted cost, more often the smaller plane; `weigh_unpaired_min_area_m2` still
-    applies to large map planes."""
     weigh_unpaired_min_area_m2: float | None = 3.0
-    """`weigh_unpaired` for the observed planes that could pair with a map plane of at least
-    this area [m^2] (>= 0; a wall, a floor), whatever `weigh_unpaired` says; null: for
-    none. A structure goes to the observation that loses more when left out (a wall keeps
-    its landmark rather than giving it to a picture on it), while contests over furniture
-    and clutter, where the inlier share says little about which observation is the map
-    plane, stay count-first."""
+    """Association contests over map planes of at least this area [m^2] (>= 0; a wall, a
+    floor; 0: every map plane; null: none) are decided by weight: leaving an observed
+    plane unpaired costs its inlier share times the largest cost the gates allow
+    (`association.associate_planes`), so a structure goes to the observation that loses
+    more when left out (a wall keeps its landmark rather than giving it to a picture on
+    it). Contests over smaller map planes (furniture, clutter, where the inlier share says
+    little about which observation is the map plane) stay count-first: the most pairs,
+    then the lower weighted cost."""
     max_outlier_rounds: int = 3
     """Rounds of dropping correspondences beyond the residual gates and solving again."""
     fast_max_gap_s: float = 0.1
@@ -232,26 +227,12 @@ class TrackingConfig:
     fast_max_correction_deg: float = 3.0
     """... and turned it by at most this [deg]; farther, when `points.min_inliers`
     keypoint matches with the last keyframe agree with it."""
-    refine_planes: bool = False
-    """Refine the fast path's closed-form plane pose (whose weights are inlier counts) by
-    the robust estimate over the same planes and corners, each plane weighted by its fit
-    covariance plus the sensor's depth error correlated across its patch
-    (`core.plane_fit.patch_covariance`: large near planes count most, small far patches
-    little) plus `refine_floor_*`; the jump limit (`fast_max_jump_*`) then judges the
-    refined pose. It takes out the closed form's per-frame jitter along directions that
-    only small patches fix. Off by default: on long runs that revisit a place and at wide
-    baselines it lets wrong poses into the map."""
     refine_floor_deg: float = 0.17
-    """Normal noise added to every plane in the refinement: the map plane's and the
-    pose's own error [deg] (> 0) ..."""
+    """Normal noise added to every plane when a frame's pose is re-estimated against the
+    final map from planes weighted by their fit and patch covariances (`final_poses`):
+    the map plane's and the pose's own error [deg] (> 0) ..."""
     refine_floor_m: float = 0.003
     """... and offset noise [m] (> 0)."""
-    refine_max_step_m: float = 0.02
-    """The refined pose is taken when it is within this of the closed-form pose [m] (> 0)
-    and `refine_max_step_deg` ..., or nearer the prediction than the closed-form pose (a
-    refinement that pulls away from both rests on a wrong fit)."""
-    refine_max_step_deg: float = 1.0
-    """... [deg] (> 0)."""
     final_poses: bool = True
     """When the run finishes, re-estimate each frame between keyframes against the final map
     from the planes and corners it was tracked with (`tracking.final_poses`), rather than
@@ -361,8 +342,6 @@ class TrackingConfig:
             "fast_max_jump_deg",
             "refine_floor_deg",
             "refine_floor_m",
-            "refine_max_step_m",
-            "refine_max_step_deg",
             "final_max_step_m",
             "final_max_step_deg",
             "max_sigma_deg",

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.types import TrackingPath
 from planeslam.tracking.association import (
     Association,
@@ -27,16 +26,11 @@ from planeslam.tracking.association import (
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import (
     ConstraintThresholds,
-    EstimatorSettings,
-    PlaneTerms,
     PointTerms,
     PoseConstraints,
     Primitive,
     corner_terms,
-    estimate_pose,
-    fully_constrained,
 )
-from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.registration import (
     RegistrationResult,
     RegistrationStatus,
@@ -70,20 +64,15 @@ class PoseSolve:
 
 
 class PlanePath:
-    """Plane and corner association and the closed-form pose (`register`, `refined`)."""
+    """Plane and corner association and the closed-form pose (`register`, `completed`)."""
 
     def __init__(
         self,
         config: TrackingConfig,
-        sensor: DepthNoiseConfig,
-        refine_settings: EstimatorSettings,
         thresholds: ConstraintThresholds,
     ) -> None:
-        """`refine_settings`: the robust estimate's settings for `refined`; `thresholds`:
-        when a direction counts as fixed."""
+        """`thresholds`: when a direction counts as fixed."""
         self.config = config
-        self.sensor = sensor
-        self.refine_settings = refine_settings
         self.thresholds = thresholds
 
     def associate(self, frame: FrameView, view: MapView, T: np.ndarray) -> Association:
@@ -108,12 +97,10 @@ class PlanePath:
         )
 
     def _weighed_map_planes(self, view: MapView) -> bool | np.ndarray:
-        """Which map planes' contests `weigh_unpaired` decides (`associate_planes`): all
-        (True), or (M,) bool the structures, map planes of at least
-        `weigh_unpaired_min_area_m2`; False when map areas are unknown."""
+        """Which map planes' contests weights decide (`associate_planes`' `weigh_unpaired`):
+        (M,) bool the structures, map planes of at least `weigh_unpaired_min_area_m2`;
+        False when map areas are unknown."""
         cfg = self.config
-        if cfg.weigh_unpaired:
-            return True
         if cfg.weigh_unpaired_min_area_m2 is None or view.plane_weights is None:
             return False
         return np.asarray(view.plane_weights >= cfg.weigh_unpaired_min_area_m2)
@@ -221,36 +208,6 @@ class PlanePath:
         return corner_terms(
             frame.corner_points[co], view.corner_points[cm], self.config.sigma_point_m
         )
-
-    def refined(
-        self, frame: FrameView, view: MapView, solve: PoseSolve, T_pred: np.ndarray
-    ) -> np.ndarray:
-        """The closed-form plane pose of `solve` refined by the robust estimate over the
-        same planes (each weighted by its fit and patch covariance, `refine_planes`) and
-        corners; the closed-form pose when the refinement leaves a direction free, or moves
-        it beyond `refine_max_step_*` and away from the prediction T_pred (4, 4)."""
-        cfg = self.config
-        assoc = solve.association
-        obs, mp = assoc.plane_rows()
-        cov = frame.plane_covariances(obs, self.sensor)
-        if cov is None:
-            return solve.T  # a view built without its planes' statistics (tests)
-        planes = PlaneTerms(frame.normals[obs], frame.d[obs], view.normals[mp], view.d[mp], cov)
-        estimate = estimate_pose(
-            solve.T,
-            planes,
-            [self.corner_terms(frame, view, assoc)],
-            None,
-            self.refine_settings,
-        )
-        if not fully_constrained(estimate, self.thresholds):
-            return solve.T
-        T = estimate.T_world_cam
-        meters, degrees = pose_difference(solve.T, T)
-        small = meters <= cfg.refine_max_step_m and degrees <= cfg.refine_max_step_deg
-        if small or pose_difference(T_pred, T)[0] <= pose_difference(T_pred, solve.T)[0]:
-            return T
-        return solve.T
 
 
 def planes_within_gates(reg: RegistrationResult, cfg: TrackingConfig) -> np.ndarray:

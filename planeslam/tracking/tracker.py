@@ -106,7 +106,7 @@ class Tracker:
         if config.points.enabled and camera is not None:
             self.keypoint_map = KeypointMap(KeypointDetector(camera, self.sensor, config.points))
         self.settings, self.refine_settings, self.thresholds = estimator_settings(config)
-        self.planes = PlanePath(config, self.sensor, self.refine_settings, self.thresholds)
+        self.planes = PlanePath(config, self.thresholds)
         self.joint = JointEstimator(
             config, self.sensor, self.planes, self.settings, self.thresholds, self.rng
         )
@@ -237,7 +237,7 @@ class Tracker:
             and good.registration.status is RegistrationStatus.OK
             and self.prediction_valid  # after a loss the prediction is no evidence
         ):
-            T_fast = self.planes.refined(frame, view, good, T_pred) if cfg.refine_planes else good.T
+            T_fast = good.T
         weak = (  # a direction that only a sliver of the planes' information fixes
             good is not None
             and points is not NO_KEYPOINTS
