@@ -1,7 +1,7 @@
 """Relocalisation benchmark: frames placed in a finished map one at a time, with no prior.
 
 The map is a SLAM's after a run (planes, corners, edges, objects, and the keypoints of its
-keyframes when `tracking.points.every_keyframe` was on) or a saved map.json (primitives
+keyframes: the run detects them all) or a saved map.json (primitives
 only). Every chosen frame goes through the front end and `Tracker.relocalise` on its own:
 no prediction (the identity only breaks ties), nothing of earlier attempts kept, the map
 not changed. A frame counts as relocalised when the pose is within the tolerances of its
@@ -270,10 +270,7 @@ def relocalisation_benchmark(
     `map_path` (primitives only), or else the map of a full SLAM run over the dataset made
     first (with the keypoints of every keyframe)."""
     root = Path(dataset_dir)
-    layers: list[str | ConfigLayer] = list(overrides)
-    if map_path is None:
-        layers.insert(0, "tracking.points.every_keyframe=true")
-    cfg = resolve_config(root, config, camera, layers)
+    cfg = resolve_config(root, config, camera, list(overrides))
     dataset, cfg = open_configured(root, cfg)
     indices = frame_indices(len(dataset), None, every)
     if map_path is not None:
@@ -282,6 +279,6 @@ def relocalisation_benchmark(
     first = None
     if cfg.run.start_pose == "groundtruth":
         first = dataset.groundtruth_pose(dataset.timestamps[0])
-    with SLAM(cfg, T_world_first=first) as slam:
+    with SLAM(cfg, T_world_first=first, every_keyframe_keypoints=True) as slam:
         run_frames(slam, dataset, range(len(dataset)))
         return relocalise_frames(slam, dataset, indices, reference=slam.trajectory())

@@ -105,6 +105,23 @@ def test_keypoint_map_detects_lazily_moves_and_votes(rng: np.random.Generator) -
     assert store.vote(query, 1) == [20]
 
 
+def test_a_map_made_to_relocalise_in_keeps_every_keyframes_keypoints(
+    rng: np.random.Generator,
+) -> None:
+    """With `every_keyframe`, a keyframe's keypoints are detected as it leaves the window,
+    so a later search can match it; without, it leaves with nothing (none were needed)."""
+    depth = np.full((480, 640), 2.0, np.float32)
+    images = [textured(rng) for _ in range(3)]
+    detector = KeypointDetector(CAMERA, SENSOR, PointConfig(window=2))
+    query = detector.detect(images[0], cloud_of(depth))
+    for every, expected in ((True, [0, 10, 20]), (False, [10, 20])):
+        store = KeypointMap(detector, every_keyframe=every)
+        for k, rgb in enumerate(images):
+            store.add(10 * k, np.eye(4), rgb, cloud_of(depth))
+        assert store.recent(5) == expected
+        assert (len(store.matches(query, [0])) > 100) is every
+
+
 @pytest.mark.parametrize("noise_model", ["kinect", "disparity"])
 def test_two_rendered_views_register_from_keypoints(noise_model: str) -> None:
     """Two views of the box-in-a-room 15 deg and 18 cm apart (one step of the paper's

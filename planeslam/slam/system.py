@@ -112,6 +112,7 @@ class SLAM:
         seed: int | None = None,
         map: Map | None = None,
         localize: bool = False,
+        every_keyframe_keypoints: bool = False,
     ) -> None:
         """`backend` and `seed` default to the config's `run` section. `T_world_first`
         ((4, 4) array or gtsam.Pose3): the first frame's ground-truth pose, taken with
@@ -119,14 +120,22 @@ class SLAM:
         `map` (e.g. `Map.load(path)`): track in this map instead of starting an empty one;
         the first frame is placed in it by relocalisation (T_world_first only breaks ties)
         and frames are lost until one is. With `localize` the map is not changed (no
-        merging, no backend keyframes); without it, it is extended as usual."""
+        merging, no backend keyframes); without it, it is extended as usual. With
+        `every_keyframe_keypoints`, every keyframe's keypoints are detected, so frames can
+        later relocalise by keypoints anywhere in the map (a map made to relocalise in;
+        one detection per keyframe); without, only where a frame needed them."""
         if localize and map is None:
             raise ConfigError("localize needs a map to localise in (map=Map.load(path))")
         self.config = config
         self.front_end = FrontEnd(config, seed=config.run.seed if seed is None else seed)
         odometry = RgbdOdometry(config.camera) if config.tracking.rgbd_odometry else None
         self.tracker = Tracker(
-            config.tracking, odometry, config.camera, config.sensor, config.run.seed
+            config.tracking,
+            odometry,
+            config.camera,
+            config.sensor,
+            config.run.seed,
+            every_keyframe_keypoints=every_keyframe_keypoints,
         )
         self.backend: Backend = create_backend(backend or config.run.backend, config.backend)
         self._in_given_map = map is not None

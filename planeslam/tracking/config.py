@@ -37,10 +37,6 @@ class PointConfig:
     window: int = 4
     """Most recent keyframes whose images are kept, so their keypoints can be computed
     when a later frame first needs them (none are computed while planes suffice)."""
-    every_keyframe: bool = False
-    """Detect the keypoints of every keyframe (as it leaves the window), so keypoints can
-    relocalise anywhere in the map later; false: only of keyframes a later frame needed
-    (no cost while planes suffice)."""
     recent_keyframes: int = 3
     """Recent keyframes a frame's keypoints are matched against."""
     ransac_iterations: int = 200
@@ -99,8 +95,8 @@ class PointConfig:
 @dataclass(frozen=True)
 class LoopConfig:
     """Loop constraints: a keyframe's keypoints matched against the older keyframes it
-    revisits (`planeslam.tracking.loops`). Needs colour and `points.enabled`; makes
-    `points.every_keyframe` true in effect (every keyframe's keypoints are detected)."""
+    revisits (`planeslam.tracking.loops`). Needs colour and `points.enabled`; every
+    keyframe's keypoints are then detected (on the loop search's thread)."""
 
     enabled: bool = False
     """Look for a loop at every keyframe (on a thread beside tracking). Off by default:

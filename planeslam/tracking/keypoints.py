@@ -212,8 +212,13 @@ class _Keyframe:
 class KeypointMap:
     """Keypoints of the map's keyframes, world frame through each keyframe's pose."""
 
-    def __init__(self, detector: KeypointDetector) -> None:
+    def __init__(self, detector: KeypointDetector, every_keyframe: bool = False) -> None:
+        """With `every_keyframe`, the keypoints of every keyframe are detected as it leaves
+        the window (so a later search can relocalise anywhere in the map: a map made to
+        relocalise in); without, only of the keyframes a frame needed (no cost while planes
+        suffice)."""
         self.detector = detector
+        self.every_keyframe = every_keyframe
         self._keyframes: OrderedDict[int, _Keyframe] = OrderedDict()
         self._stack: tuple[np.ndarray, np.ndarray] | None = None
         """(descriptors (D, 32), keyframe index per row) of every keyframe with keypoints,
@@ -236,7 +241,7 @@ class KeypointMap:
         self._keyframes[index] = _Keyframe(index, np.array(T_world_cam), keypoints, images)
         window = self.detector.config.window
         for kf in list(self._keyframes.values())[:-window]:
-            if kf.images is not None and self.detector.config.every_keyframe:
+            if kf.images is not None and self.every_keyframe:
                 self._keypoints(kf)
             kf.images = None  # out of the window: its images are released
         if keypoints is not None:

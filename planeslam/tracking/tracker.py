@@ -91,11 +91,11 @@ class Tracker:
         sensor: DepthNoiseConfig | None = None,
         seed: int = 0,
         empty_map_starts: bool = True,
+        every_keyframe_keypoints: bool = False,
     ) -> None:
-        """`odometry`: an `odometry.RgbdOdometry` for the dense fallback, or None. `camera`
-        and `sensor` enable keypoints (`config.points`) and real edge ends. With
-        `empty_map_starts`, a frame nothing places while the map has no plane starts the
-        map where predicted (path `first`); otherwise it is lost."""
+        """`odometry`: an `odometry.RgbdOdometry` for the dense fallback, or None; `camera`,
+        `sensor` enable keypoints (`KeypointMap`) and real edge ends. `empty_map_starts`:
+        a frame nothing places in an empty map starts it where predicted (path `first`)."""
         self.config = config
         self.empty_map_starts = empty_map_starts
         self.odometry = odometry
@@ -104,7 +104,8 @@ class Tracker:
         self.rng = np.random.default_rng(seed)
         self.keypoint_map: KeypointMap | None = None
         if config.points.enabled and camera is not None:
-            self.keypoint_map = KeypointMap(KeypointDetector(camera, self.sensor, config.points))
+            detector = KeypointDetector(camera, self.sensor, config.points)
+            self.keypoint_map = KeypointMap(detector, every_keyframe_keypoints)
         self.settings, self.refine_settings, self.thresholds = estimator_settings(config)
         self.planes = PlanePath(config, self.thresholds)
         self.joint = JointEstimator(
