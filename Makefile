@@ -26,15 +26,19 @@ demo: $(STAMP)
 	$(BIN)/planeslam demo --out $(DEMO_OUT)
 
 # Both test targets spread the test modules over the machine's cores (pytest-xdist; each
-# module runs whole in one worker, so its fixtures are made once).
+# module runs whole in one worker, so its fixtures are made once) and keep compiled
+# bytecode and pytest's rewritten test modules even where PYTHONDONTWRITEBYTECODE is set
+# (recompiling them cost about 5 s of every run).
+PYTEST := PYTHONDONTWRITEBYTECODE= $(BIN)/python -m pytest -q -n auto --dist loadfile
+
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -n auto --dist loadfile
+	$(PYTEST)
 
 # The unit tests (each test module sets its tier with `pytestmark`; a test of a unit module
 # that crosses stages is marked integration itself), without the slow ones and those on the
 # real data (< 20 s); `make test` runs everything.
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -q -n auto --dist loadfile -m "unit and not integration and not slow and not data"
+	$(PYTEST) -m "unit and not integration and not slow and not data"
 
 lint: $(STAMP)
 	$(BIN)/ruff check planeslam factors eval tests examples
