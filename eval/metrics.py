@@ -72,10 +72,7 @@ class RunMetrics:
     backend: dict[str, float] = field(default_factory=dict)
     """The iSAM2 backend's own figures, when it ran: update_ms_median and update_ms_max
     (per keyframe, in its process; the 'backend' stage is what tracking waited), batch_ms
-    (the final optimisation), failures (indeterminate updates handled), factors, loops
-    (loop constraints against older keyframes, `planeslam.tracking.loops`) and, when
-    loops are on, loop_search_ms_median (per keyframe, on the search's own thread; the
-    'loops' stage is what tracking spent on them)."""
+    (the final optimisation), failures (indeterminate updates handled) and factors."""
     pose_glitches: dict[str, Any] = field(default_factory=dict)
     """Poses of trajectory.txt that jump away from the frames around them and back
     (`planeslam.tracking.glitches.PoseGlitches`: count, judged, timestamps and the
@@ -209,17 +206,13 @@ def _backend_figures(slam: SLAM) -> dict[str, float]:
     if result is None or not result.num_factors:  # no factor graph (the paper's merge)
         return {}
     update_ms = np.asarray(result.update_ms, dtype=np.float64)
-    figures = {
+    return {
         "update_ms_median": float(np.median(update_ms)) if update_ms.size else 0.0,
         "update_ms_max": float(update_ms.max()) if update_ms.size else 0.0,
         "batch_ms": float(result.batch_ms),
         "failures": int(result.failures),
         "factors": int(result.num_factors),
-        "loops": len(slam.loops),
     }
-    if slam.loop_search_ms:
-        figures["loop_search_ms_median"] = float(np.median(slam.loop_search_ms))
-    return figures
 
 
 METRICS_SCHEMA = "planeslam.metrics/1"

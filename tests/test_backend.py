@@ -330,7 +330,7 @@ def test_a_loop_constraint_closes_the_loop(room_loop, window: int) -> None:
         backend.add_keyframe(
             len(T_true), 99.0, T_prev, observations[0], {}, None, np.eye(4), loops=(ahead,)
         )
-    # The last keyframe's loop, found late (as planeslam's search beside tracking delivers
+    # The last keyframe's loop, found late (as a loop detector beside tracking delivers
     # it): it comes with the next keyframe and ties the keyframe it names.
     T_first_last = invert_pose(T_true[0]) @ T_true[-1]
     late_loop = LoopConstraint(len(T_true) - 1, old_index=0, T_old_cam=T_first_last, inliers=1)

@@ -11,17 +11,16 @@ import numpy as np
 import pytest
 from helpers import assert_pose_close
 
-from planeslam.app.runner import RunResult, run_sequence
+from planeslam.app.runner import run_sequence
 from planeslam.config import PlaneSlamConfig, resolve_config
 from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError
-from planeslam.eval.metrics import slam_run_metrics
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, read_tum
 from planeslam.mapping.world_map import Map
 from planeslam.sim.sequence import synthesize
-from planeslam.slam import SLAM, FrameResult, run_frames
+from planeslam.slam import SLAM, run_frames
 
 pytestmark = pytest.mark.integration  # full SLAM runs, `planeslam run`
 
@@ -214,56 +213,6 @@ def test_the_dense_fallbacks_register_against_the_corrected_previous_pose(loop: 
         if i > 0:  # the first frame starts the map without tracking
             assert previous is not None
             assert_pose_close(previous, tracked.T_world_cam, 1e-9, 1e-9)
-
-
-@pytest.mark.slow
-def test_a_revisit_sends_loop_constraints_that_keep_the_poses(loop: Path) -> None:
-    """The room-with-boxes loop comes back to where it started. With loop constraints on
-    (`tracking.loops`, off by default) and every loop kept however small its correction
-    (`min_correction_*` 0), the keyframes
-    that revisit the start place themselves against older keyframes by keypoints; the
-    constraints reach the graph (metrics count them) and, being right, keep the poses as
-    good as without them."""
-    cfg = resolve_config(
-        loop,
-        overrides=[
-            "tracking.loops.enabled=true",
-            "tracking.loops.min_correction_m=0",
-            "tracking.loops.min_correction_deg=0",
-            "tracking.loops.skip_recent=5",
-        ],
-    )
-    dataset = TumDataset(loop, cfg.camera, cfg.dataset)
-    results = {}
-    for enabled in (True, False):
-        config = dataclasses.replace(
-            cfg,
-            tracking=dataclasses.replace(
-                cfg.tracking, loops=dataclasses.replace(cfg.tracking.loops, enabled=enabled)
-            ),
-        )
-        slam = SLAM(config, "isam2", T_world_first=dataset.groundtruth_pose(dataset.timestamps[0]))
-        frames: list[FrameResult] = []
-        summary = run_frames(slam, dataset, range(len(dataset)), on_result=frames.append)
-        keyframes = [r.index for r in frames if r.keyframe]
-        ev = evaluate_trajectory(dataset.groundtruth, slam.trajectory(), 0.02, 1.0)
-        results[enabled] = (slam, summary, ev, keyframes)
-    slam, summary, ev, keyframes = results[True]
-    assert len(slam.loops) >= 3, slam.loops
-    for index, old in slam.loops:
-        assert keyframes.index(index) - keyframes.index(old) > 5  # not among the recent
-    metrics = slam_run_metrics(slam, summary)
-    figures = metrics.backend
-    assert figures["loops"] == len(slam.loops)
-    assert len(slam.loop_search_ms) == len(keyframes) - 1  # the last one's is not collected
-    assert figures["loop_search_ms_median"] > 0  # timed on the search's thread
-    assert "loop search median" in RunResult(loop, summary, metrics, None).text()
-    assert not results[False][0].loops
-    assert "loop_search_ms_median" not in slam_run_metrics(*results[False][:2]).backend
-    assert ev.ate_rmse_m < max(0.01, 1.5 * results[False][2].ate_rmse_m), (
-        ev.ate_rmse_m,
-        results[False][2].ate_rmse_m,
-    )
 
 
 def test_a_revisit_follows_the_keyframe_made_at_that_place(loop: Path) -> None:

@@ -103,13 +103,6 @@ class RunResult:
                 f"iSAM2: {b['factors']:.0f} factors, update median "
                 f"{b['update_ms_median']:.0f} ms (max {b['update_ms_max']:.0f}) per keyframe, "
                 f"final batch {b['batch_ms']:.0f} ms, {b['failures']:.0f} failures handled"
-                + (f", {b['loops']:.0f} loop constraints" if b.get("loops") else "")
-                + (
-                    f" (loop search median {b['loop_search_ms_median']:.0f} ms per keyframe "
-                    "on its own thread)"
-                    if "loop_search_ms_median" in b
-                    else ""
-                )
             )
         if self.evaluation is not None:
             ev = self.evaluation.evaluation

@@ -85,9 +85,9 @@ class KeyframeInput:
     """The caller's odometry since the previous keyframe (`SLAM.process(odometry=...)`,
     composed over the frames between), beside tracking's `T_prev_cam`; None: not given."""
     loops: tuple[LoopConstraint, ...] = ()
-    """Poses of it or of earlier keyframes (`LoopConstraint.index`: planeslam's loop search
-    delivers a keyframe's with the next one, a larger stack's may be later still) against
-    older keyframes they revisit (`planeslam.tracking.loops`)."""
+    """Poses of it or of earlier keyframes (`LoopConstraint.index`: a loop detector beside
+    tracking may deliver a keyframe's with a later one) against older keyframes they
+    revisit, from the caller's own loop detector (planeslam has none)."""
     relocalised: bool = False
     """Whether `T_prev_cam` is no measured motion: the keyframe was placed by a whole-map
     search, or frames since the previous keyframe were lost. The backend then ties it to the

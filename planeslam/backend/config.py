@@ -21,7 +21,7 @@ class BackendConfig:
     """Sigma of each translation component of an odometry factor [m]."""
     loop_sigma_rot_rad: float = 0.01
     """Sigma of each rotation component of a loop factor (a keyframe placed against an
-    older keyframe by keypoints, `KeyframeInput.loops`) [rad] ..."""
+    older keyframe by the caller's loop detector, `KeyframeInput.loops`) [rad] ..."""
     loop_sigma_trans_m: float = 0.02
     """... and of each translation component [m]; Huber-robust at `loop_huber_k` sigmas."""
     loop_huber_k: float = 2.0

@@ -8,7 +8,7 @@ other one (so no pose is ever constrained by planes alone), and the landmark
 factors of its observation: its corners and the `max_planes_per_keyframe` of its planes
 that best fix its pose (`informative_planes`), a tie between each two plane landmarks
 the map joined since the last keyframe (`tie_joined_planes`), and a BetweenFactorPose3
-from each older keyframe it revisits (its loop constraints, `planeslam.tracking.loops`).
+from each older keyframe it revisits (loop constraints from the caller's loop detector).
 One `ISAM2.update` per keyframe (plus `extra_updates` relinearising iterations).
 
 With `window_keyframes` N > 0, iSAM2 holds only the last N to 1.5 N keyframes and what
@@ -175,15 +175,15 @@ class Isam2Backend:
         joined_planes: (absorbed, surviving) plane landmark ids the map found to be one
         plane since the last keyframe; with `tie_joined_planes` each pair gets a tie
         (`PlaneLandmarks.join_planes`). loops: poses of this keyframe or of earlier ones
-        (`LoopConstraint.index`: planeslam's loop search delivers a keyframe's with the
-        next one, a larger stack's may be later still) against older keyframes, each a
-        Huber-robust BetweenFactorPose3 (`loop_sigma_*`); an older keyframe outside the
-        window comes back into it held by its own factors. odometry: the caller's own
-        measured motion since the previous keyframe (wheel, IMU, VIO), one more
-        BetweenFactorPose3 with its information. relocalised: the guess is no measured
-        motion from the previous keyframe (a whole-map relocalisation, or frames lost
-        since): with `relocalisation_trial_keyframes` > 0 the keyframe gets only a weak
-        link to the previous one instead of odometry, and its placement stays revocable
+        (`LoopConstraint.index`: a loop detector beside tracking may deliver a keyframe's
+        with a later one) against older keyframes, each a Huber-robust BetweenFactorPose3
+        (`loop_sigma_*`); an older keyframe outside the window comes back into it held by
+        its own factors. odometry: the caller's own measured motion since the previous
+        keyframe (wheel, IMU, VIO), one more BetweenFactorPose3 with its information.
+        relocalised: the guess is no measured motion from the previous keyframe (a
+        whole-map relocalisation, or frames lost since): with
+        `relocalisation_trial_keyframes` > 0 the keyframe gets only a weak link to the
+        previous one instead of odometry, and its placement stays revocable
         (`planeslam.backend.hypotheses`; what was taken out: `rejected`).
 
         A loop whose residual after an update exceeds `HYPOTHESIS_GATE_*` (the rest of the

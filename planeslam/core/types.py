@@ -149,9 +149,8 @@ class FrameMeasurements:
 
 @dataclass(frozen=True)
 class LoopConstraint:
-    """A keyframe placed against an older keyframe it revisits, by keypoint matches and
-    both keyframes' planes (`planeslam.tracking.loops`): a relative pose for the backend's
-    graph."""
+    """A keyframe placed against an older keyframe it revisits (by the caller's loop
+    detector: `KeyframeInput.loops`): a relative pose for the backend's graph."""
 
     index: int
     """Frame index of the keyframe placed."""

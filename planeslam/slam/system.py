@@ -59,7 +59,7 @@ from planeslam.core.geometry import (
     orthonormalize_pose,
     transform_points,
 )
-from planeslam.core.types import LoopConstraint, RelativePose, TrackingPath
+from planeslam.core.types import RelativePose, TrackingPath
 from planeslam.frontend.pipeline import FrameObservation, FrontEnd
 from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.sparse_cloud import FusedCloudSize
@@ -67,8 +67,6 @@ from planeslam.mapping.world_map import Map
 from planeslam.slam.anchors import AnchoredPoses, FinalMap
 from planeslam.slam.records import FrameResult
 from planeslam.tracking.glitches import PoseGlitches
-from planeslam.tracking.keypoints import Keypoints
-from planeslam.tracking.loops import LoopOutcome, LoopSearch
 from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.segments import Segment, Segments
 from planeslam.tracking.tracker import MapView, Tracker, TrackResult
@@ -183,18 +181,6 @@ class SLAM:
         self._joined_planes: list[tuple[int, int]] = []
         """(absorbed, surviving) map plane ids joined since the last keyframe went to the
         backend, which ties them in the graph with the next one."""
-        self._loop_search: LoopSearch | None = None
-        """Each keyframe's loop search, beside tracking (`KeyframeLoops.search`), when loops
-        are on and the backend takes them."""
-        loops = self.tracker.loops
-        if self.backend.takes_loops and config.tracking.loops.enabled and loops is not None:
-            self._loop_search = LoopSearch(loops.search)
-            weakref.finalize(self, self._loop_search.close)  # dropped without close
-        self.loops: list[tuple[int, int]] = []
-        """(keyframe, older keyframe) frame indices of every loop constraint sent to the
-        backend."""
-        self.loop_search_ms: list[float] = []
-        """Per collected loop search: its wall-clock time on the search's thread [ms]."""
         self.backend_result: BackendResult | None = None
         """What the backend reported at `finish`: update times, failures, factors."""
         self.pointcloud_bytes = 0
@@ -219,8 +205,6 @@ class SLAM:
         """Stop the backend without optimising (an interrupted run); idempotent. The SLAM
         takes no more frames; its map and trajectory so far stay readable."""
         self._finished = True
-        if self._loop_search is not None:
-            self._loop_search.close()
         self._stop_backend()
 
     # -------------------------------------------------------------------------- state
@@ -320,12 +304,11 @@ class SLAM:
 
         keyframe = track.path.maps and self._is_keyframe(T_world_cam, track.new_planes)
         if keyframe:
-            keypoints = track.keypoints
             if not self.localize:  # a localising run keeps keyframes for tracking only
                 T_world_cam = self._add_keyframe(
-                    index, timestamp, observation, track, rgb, stage_ms, keypoints
+                    index, timestamp, observation, track, rgb, stage_ms
                 )
-            self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, keypoints)
+            self.tracker.add_keyframe(index, T_world_cam, rgb, observation.cloud, track.keypoints)
         self._remember(timestamp, T_world_cam, keyframe, track)
         if joined is not None:
             self._join(index, joined)
@@ -424,14 +407,10 @@ class SLAM:
         track: TrackResult,
         rgb: np.ndarray | None,
         stage_ms: dict[str, float],
-        keypoints: Keypoints | None,
     ) -> np.ndarray:
         """Merge the frame into the map and hand it to the backend (after applying the
-        previous keyframe's update if it is still pending) with the previous keyframe's
-        loop constraint, if its search found one, and start this keyframe's loop search
-        on the loop search's thread (`KeyframeLoops.search`: from its `keypoints`, or
-        detected in `rgb`). Returns the frame's pose: corrected by that update, or with
-        `lag_frames` 0 the backend's own."""
+        previous keyframe's update if it is still pending). Returns the frame's pose:
+        corrected by that update, or with `lag_frames` 0 the backend's own."""
         T_world_cam = track.T_world_cam
         moved: tuple[int, ...] = ()
         if self._pending:
@@ -440,17 +419,6 @@ class SLAM:
             correction = self._apply_update(self.backend.collect(), merge_segments=False)
             T_world_cam = orthonormalize_pose(correction @ T_world_cam)
             stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
-        loops: tuple[LoopConstraint, ...] = ()
-        if self._loop_search is not None:
-            t0 = time.perf_counter()
-            loops = self._collect_loop()
-            cloud = observation.cloud
-            images = None if rgb is None or cloud is None else (rgb, cloud)
-            assert self.tracker.loops is not None  # with the loop search
-            query = self.tracker.loops.query(index, observation, T_world_cam, keypoints, images)
-            if query is not None:
-                self._loop_search.submit(query)
-            stage_ms["loops"] = 1e3 * (time.perf_counter() - t0)
         t0 = time.perf_counter()
         self._merged_frames[self.map.frames_merged] = index
         merged = self.map.merge(
@@ -483,7 +451,6 @@ class SLAM:
                 T_prev_cam=T_prev_cam,
                 odometry=self._odometry_since_keyframe if T_prev_cam is not None else None,
                 joined_planes=tuple(self._joined_planes),
-                loops=loops,
                 relocalised=relocalised,
             )
         )
@@ -497,28 +464,6 @@ class SLAM:
             T_world_cam = self.poses.online(index)
         stage_ms["backend"] = stage_ms.get("backend", 0.0) + 1e3 * (time.perf_counter() - t0)
         return T_world_cam
-
-    def _collect_loop(self) -> tuple[LoopConstraint, ...]:
-        """The previous keyframe's loop search (`_take_loop_search`), timed; its loop
-        constraint (if any) is returned and counted in `loops`."""
-        outcome = self._take_loop_search()
-        if outcome is None:
-            return ()
-        self.loop_search_ms.append(outcome.search_ms)
-        if outcome.loop is None:
-            return ()
-        self.loops.append((outcome.loop.index, outcome.loop.old_index))
-        return (outcome.loop,)
-
-    def _take_loop_search(self) -> LoopOutcome | None:
-        """The pending loop search's outcome (waiting for it), its keypoints given to the
-        keypoint map; None when none is pending."""
-        assert self._loop_search is not None
-        outcome = self._loop_search.collect()
-        if outcome is not None:
-            assert self.tracker.loops is not None  # with the loop search
-            self.tracker.loops.take_keypoints(outcome)
-        return outcome
 
     def _apply_update(
         self, update: KeyframeUpdate, move_last_tracked: bool = True, merge_segments: bool = True
@@ -604,9 +549,6 @@ class SLAM:
         start = time.perf_counter()
         self._finished = True
         self._pending = None  # the final state below supersedes its update
-        if self._loop_search is not None:  # the last keyframe's: its keypoints only, no
-            self._take_loop_search()  # later keyframe takes its loop
-            self._loop_search.close()
         try:
             result = self.backend.finish()
         finally:

@@ -93,70 +93,6 @@ class PointConfig:
 
 
 @dataclass(frozen=True)
-class LoopConfig:
-    """Loop constraints: a keyframe's keypoints matched against the older keyframes it
-    revisits (`planeslam.tracking.loops`). Needs colour and `points.enabled`; every
-    keyframe's keypoints are then detected (on the loop search's thread)."""
-
-    enabled: bool = False
-    """Look for a loop at every keyframe (on a thread beside tracking). Off by default:
-    where colour and depth are not registered to each other, a loop's relative pose can be
-    as far off as the drift it would correct."""
-    skip_recent: int = 20
-    """The most recent keyframes are not candidates (tracking already joins them)."""
-    search_radius_m: float = 1.0
-    """Candidates: older keyframes whose camera is within this of the keyframe's [m] ..."""
-    search_angle_deg: float = 45.0
-    """... and whose optical axis is within this of its [deg] ..."""
-    pool: int = 10
-    """... the nearest this many of them vote with their descriptors."""
-    candidates: int = 2
-    """Best-voted older keyframes (`KeypointMap.vote`) matched in full."""
-    min_inliers: int = 40
-    """Keypoint matches that must agree with the loop's pose."""
-    min_inlier_fraction: float = 0.3
-    """... and at least this fraction of the matches with that keyframe."""
-    min_correction_m: float = 0.03
-    """A loop is kept only when it moves the tracked pose at least this far [m] ..."""
-    min_correction_deg: float = 1.5
-    """... or turns it at least this much [deg] (below both, tracking agrees with it)."""
-    max_correction_m: float = 0.5
-    """A loop that moves the tracked pose farther than this [m] ..."""
-    max_correction_deg: float = 20.0
-    """... or turns it more than this [deg] is taken for a false match and dropped."""
-    refine_planes: bool = True
-    """Refine the points' relative pose by both keyframes' planes, corners and edges (the
-    older keyframe's observation as the map); a loop whose refinement is not trusted ..."""
-    refine_max_step_m: float = 0.05
-    """... or moves the points' pose more than this [m] ..."""
-    refine_max_step_deg: float = 3.0
-    """... or this [deg] is dropped."""
-
-    def __post_init__(self) -> None:
-        for name in ("skip_recent", "pool", "candidates", "min_inliers"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"tracking.loops.{name} must be >= 1, got {getattr(self, name)}")
-        if not 0 <= self.min_inlier_fraction <= 1:
-            raise ConfigError(
-                "tracking.loops.min_inlier_fraction must be in [0, 1], got "
-                f"{self.min_inlier_fraction}"
-            )
-        for name in ("min_correction_m", "min_correction_deg"):
-            if not getattr(self, name) >= 0:
-                raise ConfigError(f"tracking.loops.{name} must be >= 0, got {getattr(self, name)}")
-        for name in (
-            "search_radius_m",
-            "search_angle_deg",
-            "max_correction_m",
-            "max_correction_deg",
-            "refine_max_step_m",
-            "refine_max_step_deg",
-        ):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"tracking.loops.{name} must be > 0, got {getattr(self, name)}")
-
-
-@dataclass(frozen=True)
 class TrackingConfig:
     """Gates and fallbacks of frame-to-map tracking."""
 
@@ -288,8 +224,6 @@ class TrackingConfig:
     decide which directions a primitive constrains."""
     points: PointConfig = field(default_factory=PointConfig)
     """Keypoints with depth."""
-    loops: LoopConfig = field(default_factory=LoopConfig)
-    """Loop constraints against older keyframes (keypoints)."""
     segments: bool = True
     """After a loss, track on in a new segment (from the lost frame) and join it to the
     map when a later frame relocalises (`segments`); false: stay lost until then."""

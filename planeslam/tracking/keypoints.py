@@ -247,42 +247,11 @@ class KeypointMap:
         if keypoints is not None:
             self._stack = None
 
-    def pose(self, index: int) -> np.ndarray:
-        """(4, 4) T_world_cam of keyframe `index` (as last moved)."""
-        return self._keyframes[index].T_world_cam
-
-    def poses(self) -> tuple[np.ndarray, np.ndarray]:
-        """Frame indices (K,) of the keyframes, oldest first, and their (K, 4, 4) poses."""
-        indices = np.fromiter(self._keyframes, np.int64, len(self._keyframes))
-        poses = np.array([kf.T_world_cam for kf in self._keyframes.values()]).reshape(-1, 4, 4)
-        return indices, poses
-
     def move(self, index: int, T_world_cam: np.ndarray) -> None:
         """The keyframe `index` has a new pose (4, 4) (the backend's correction)."""
         kf = self._keyframes.get(index)
         if kf is not None:
             kf.T_world_cam = np.array(T_world_cam)
-
-    def snapshot(self, indices: np.ndarray) -> KeypointMap:
-        """A snapshot of the keyframes `indices` (frame indices, any order): their keypoints
-        (computed now if due) and poses as they are, in the map's order, sharing the
-        detector. Later changes to this map do not reach it, so another thread can search
-        it (`planeslam.tracking.loops.LoopSearch`)."""
-        wanted = {int(i) for i in indices}
-        snapshot = KeypointMap(self.detector)
-        for index, kf in self._keyframes.items():
-            if index in wanted:
-                keypoints = self._keypoints(kf)
-                snapshot._keyframes[index] = _Keyframe(index, kf.T_world_cam, keypoints)
-        return snapshot
-
-    def give_keypoints(self, index: int, keypoints: Keypoints) -> None:
-        """Keyframe `index`'s keypoints, detected elsewhere from its images (the loop
-        search's thread), unless they were computed here meanwhile."""
-        kf = self._keyframes.get(index)
-        if kf is not None and kf.keypoints is None:
-            kf.keypoints, kf.images = keypoints, None
-            self._stack = None
 
     def _keypoints(self, kf: _Keyframe) -> Keypoints | None:
         if kf.keypoints is None and kf.images is not None:
@@ -319,30 +288,16 @@ class KeypointMap:
             parts.append(in_keyframe.moved(kf.T_world_cam))
         return PointMatches.concatenate(parts)
 
-    def vote(
-        self,
-        keypoints: Keypoints,
-        count: int,
-        among: np.ndarray | None = None,
-        strongest: int | None = None,
-    ) -> list[int]:
-        """The `count` keyframes (anywhere in the map, or of the (K,) frame indices `among`)
-        holding the most
-        nearest neighbours of `keypoints`' descriptors (all, or the `strongest`) within
-        `vote_max_distance` bits, best first."""
+    def vote(self, keypoints: Keypoints, count: int) -> list[int]:
+        """The `count` keyframes anywhere in the map holding the most nearest neighbours of
+        `keypoints`' descriptors within `vote_max_distance` bits, best first."""
         import cv2
 
         stack = self._descriptor_stack()
         if stack is None or not len(keypoints):
             return []
         descriptors, owner = stack
-        if among is not None:
-            mine = np.isin(owner, among)
-            if not mine.any():
-                return []
-            descriptors, owner = descriptors[mine], owner[mine]
-        query = keypoints.descriptors[:strongest]
-        matches = cv2.BFMatcher(cv2.NORM_HAMMING).match(query, descriptors)
+        matches = cv2.BFMatcher(cv2.NORM_HAMMING).match(keypoints.descriptors, descriptors)
         rows = [m.trainIdx for m in matches if m.distance <= self.detector.config.vote_max_distance]
         if not rows:
             return []

@@ -55,7 +55,6 @@ from planeslam.tracking.keypoints import (
     LazyKeypoints,
     PointMatches,
 )
-from planeslam.tracking.loops import KeyframeLoops
 from planeslam.tracking.plane_path import (
     COMPLETED_PATHS,
     DENSE_PATHS,
@@ -112,11 +111,6 @@ class Tracker:
             config, self.sensor, self.planes, self.settings, self.thresholds, self.rng
         )
         self.dense = DenseFallback(config, odometry, camera)
-        self.loops: KeyframeLoops | None = None
-        if self.keypoint_map is not None and camera is not None:
-            self.loops = KeyframeLoops(
-                config, self.keypoint_map, camera, self.sensor, self.joint, seed
-            )
         self._result = partial(track_result, self.planes, self.sensor, config.final_poses)
         """(frame, view, T, association, path, reason, constraints, keypoints) -> TrackResult."""
         self.prediction_valid = True
