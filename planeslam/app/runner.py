@@ -204,10 +204,14 @@ def run_sequence(
             out / "config.yaml", resolved.replaced(cfg, "dataset or topic options").to_yaml()
         )
         write_run_info(RunInfo.now(root, backend, command), out)
-        if world_map is not None:
-            slam = SLAM(cfg, map=world_map, localize=localize)
-        else:
-            slam = slam_for_dataset(cfg, dataset, indices[0])
+        # A stop waits while the compiled kernels load and the backend starts: its
+        # exception, raised inside numba's compiler, would be swallowed (a finaliser) or
+        # leave the compiler broken. It is delivered right after.
+        with deferred_interrupts():
+            if world_map is not None:
+                slam = SLAM(cfg, map=world_map, localize=localize)
+            else:
+                slam = slam_for_dataset(cfg, dataset, indices[0])
         if observer is not None:
             observer.start(dataset, cfg)
         summary: RunSummary | None = None
