@@ -5,6 +5,7 @@ documented, checked on planted jumps and planted wrong relocalisations."""
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -317,3 +318,4 @@ def test_the_benchmark_runs_on_dask_and_writes_its_page(tmp_path: Path) -> None:
     written = page.read_text(encoding="utf-8")
     assert "kept" in written and "Robust benchmark: test" in written
     assert "s007-handheld" in written and "s008-robot_steps" in written
+    assert re.search(r"Reference workload \(.*\) \d+\.\d\d s before, \d+\.\d\d s after", written)

@@ -1,7 +1,8 @@
 """`planeslam bench robust`: the robustness benchmark (`planeslam.eval.robust`) with a
 progress bar; its tables go to the output folder and, with `--markdown`, into a section
-of a Markdown page (docs/benchmarks.md) headed by the command, commit, date, machine and
-load average."""
+of a Markdown page (docs/benchmarks.md) headed by the command, commit, date, machine,
+load average and the reference workload of `planeslam bench speed` timed before and after
+(so the fps columns of two runs compare across hours)."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Literal
 
-from planeslam.app.bench_speed import code_commit, cpu_model, load_average
+from planeslam.app.bench_speed import code_commit, cpu_model, load_average, reference_workload
 from planeslam.app.progress import progress_bar
 from planeslam.core.config import ConfigLayer
 from planeslam.core.errors import ConfigError
@@ -38,18 +39,28 @@ class BenchContext:
     date_utc: str
     machine: str
     load_average: tuple[float, float, float]
+    reference_s: float | None = None
+    """`bench_speed.reference_workload` [s] timed at the start (None: not timed)."""
 
     @classmethod
-    def now(cls, command: str) -> BenchContext:
+    def now(cls, command: str, reference: bool = True) -> BenchContext:
         machine = f"{cpu_model()}, {os.cpu_count()} cores"
-        return cls(command, code_commit(), _utc_now(), machine, load_average())
+        timed = reference_workload() if reference else None
+        return cls(command, code_commit(), _utc_now(), machine, load_average(), timed)
 
-    def heading_lines(self, seconds: float) -> str:
+    def heading_lines(self, seconds: float, reference_after_s: float | None = None) -> str:
         load = " ".join(f"{v:.2f}" for v in self.load_average)
+        reference = ""
+        if self.reference_s is not None and reference_after_s is not None:
+            reference = (
+                f" Reference workload (`planeslam bench speed`'s) {self.reference_s:.2f} s "
+                f"before, {reference_after_s:.2f} s after: fps compare across hours in "
+                "proportion to it.\n"
+            )
         return (
             f"Command: `{self.command}`  \n"
             f"Commit {self.commit}, {self.date_utc}, {self.machine}, load average at the "
-            f"start {load}, {seconds / 60:.1f} min.\n"
+            f"start {load}, {seconds / 60:.1f} min.\n" + reference
         )
 
 
@@ -68,11 +79,16 @@ def replace_section(page: str, label: str, section: str) -> str:
     return (page.rstrip() + "\n\n" if page.strip() else "") + block
 
 
-def robust_section(label: str, result: RobustResult, context: BenchContext) -> str:
+def robust_section(
+    label: str,
+    result: RobustResult,
+    context: BenchContext,
+    reference_after_s: float | None = None,
+) -> str:
     """The Markdown section of one benchmark run: heading, summaries, per-sequence rows."""
     return (
         f"### Robust benchmark: {label}\n\n"
-        + context.heading_lines(result.seconds)
+        + context.heading_lines(result.seconds, reference_after_s)
         + f"{result.jobs} job(s) at once on the {result.executor} executor.\n\n"
         + summary_markdown(result.rows)
         + "\n<details><summary>Per sequence</summary>\n\n"
@@ -123,7 +139,7 @@ def run_robust_command(
             with_open3d=with_open3d,
             on_row=on_row,
         )
-    section = robust_section(label, result, context)
+    section = robust_section(label, result, context, reference_workload())
     written = [write_text_atomic(Path(out_dir) / "robust.md", section + "\n")]
     if markdown is not None:
         page = markdown.read_text(encoding="utf-8") if markdown.is_file() else "# Benchmarks\n"
