@@ -1,15 +1,14 @@
 """Relocalisation benchmark: frames placed in a finished map one at a time, with no prior.
 
-The map is a SLAM's after a run (planes, corners, edges, objects, and the keypoints of its
-keyframes: the run detects them all) or a saved map.json (primitives
-only). Every chosen frame goes through the front end and `Tracker.relocalise` on its own:
-no prediction (the identity only breaks ties), nothing of earlier attempts kept, the map
-not changed. A frame counts as relocalised when the pose is within the tolerances of its
-ground truth in the map's frame: the truth moved by the SE(3) that takes the map's own
-trajectory onto it (as ATE aligns; the map run's trajectory, or a map.json's keyframes),
-so a map that started at the identity (ICL-NUIM: no truth for frame 1) scores as one that
-started at the true pose. Without such a trajectory, map and truth are taken to share
-the world frame.
+The map is a SLAM's after a run (planes, corners, edges, objects, and the keypoints of all
+its keyframes) or a saved map.json (primitives only). Every chosen frame goes through the
+front end and `Tracker.relocalise` on its own: no prediction (the identity only breaks
+ties), nothing of earlier attempts kept, the map not changed. A frame counts as
+relocalised when the pose is within the tolerances of its ground truth in the map's
+frame: the truth moved by the SE(3) that takes the map's own trajectory onto it (as ATE
+aligns; the map run's trajectory, or a map.json's keyframes), so a map that started at the
+identity (ICL-NUIM: no truth for frame 1) scores as one that started at the true pose.
+Without such a trajectory, map and truth are taken to share the world frame.
 """
 
 from __future__ import annotations
