@@ -226,34 +226,32 @@ class Tracker:
         # 1. The closed-form plane pose near the prediction.
         solve = self.planes.register(frame, view, T_pred) if not view.empty else None
         good = solve if solve is not None and trusted(solve.registration, cfg) else None
-        T_fast = None
-        if (
+        fast = (  # a full plane pose from a prediction that means something
             good is not None
             and good.registration.status is RegistrationStatus.OK
             and self.prediction_valid  # after a loss the prediction is no evidence
-        ):
-            T_fast = good.T
+        )
         weak = (  # a direction that only a sliver of the planes' information fixes
             good is not None
             and points is not NO_KEYPOINTS
             and good.registration.translation_observability < cfg.weak_translation_share
         )
         if (
-            T_fast is not None
+            fast
             and good is not None
             and (
                 (
                     not weak
-                    and motion.near(cfg, T_fast, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
+                    and motion.near(cfg, good.T, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
                 )
-                or self._keypoints_agree(points.get(), T_fast)
+                or self._keypoints_agree(points.get(), good.T)
             )
         ):
             assoc = good.association
             terms = {"planes": len(assoc.planes), "corners": len(assoc.corners)}
             found = plane_constraints(good.registration, terms)
             return self._result(
-                frame, view, T_fast, assoc, TrackingPath.PLANES, "", found, points.value
+                frame, view, good.T, assoc, TrackingPath.PLANES, "", found, points.value
             )
         reasons = [
             "no plane matched the map under the prediction"
@@ -262,7 +260,7 @@ class Tracker:
             + ("" if good is not None else " with residuals beyond the gates")
             + (
                 " with a weakly fixed translation the keypoints do not confirm"
-                if weak and T_fast is not None
+                if weak and fast
                 else ""
             )
         ]
