@@ -25,7 +25,6 @@ from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import Primitive
-from planeslam.tracking.plane_path import PoseSolve
 from planeslam.tracking.registration import refine_icp
 
 if TYPE_CHECKING:
@@ -120,16 +119,15 @@ class DenseFallback:
 
     def register(
         self,
-        T_pred: np.ndarray,
-        planes: PoseSolve | None,
+        T_start: np.ndarray,
         cloud: np.ndarray | None,
         rgbd: RgbdPair | None,
         reasons: list[str],
         slides: Callable[[], bool] = lambda: False,
         keypoints_agree: Callable[[np.ndarray], bool] = lambda T: False,
     ) -> DensePose | None:
-        """RGB-D odometry, then ICP, against the previous frame from the trusted plane pose
-        `planes` or the prediction T_pred (4, 4), taken when the result overlaps the
+        """RGB-D odometry, then ICP, against the previous frame from T_start (4, 4), taken
+        when the result overlaps the
         previous frame's depth and its colours do not contradict it. When the frame
         `slides()` (its depth mostly on parallel planes, which any slide along them still
         overlaps) and the colours cannot tell, `keypoints_agree(T)` must hold. Why a result
@@ -139,7 +137,7 @@ class DenseFallback:
         if cloud is not None:
             methods.append((Primitive.ICP, lambda T0: self._icp(cloud, T0)))
         for kind, method in methods:
-            T = method(T_pred if planes is None else planes.T)
+            T = method(T_start)
             if T is None:
                 continue
             if not self.agrees(cloud, T):

@@ -283,17 +283,16 @@ class JointEstimator:
         poses too). After a loss: at least `points.min_inliers` point matches (planes alone
         far from a prediction prove little: three of them always fit)."""
         cfg = self.config
-        best: JointSolve | None = None
+        corroborated_solves: list[JointSolve] = []
         solved: list[np.ndarray] = []
         for T0 in starts:
             differences = (pose_difference(T, T0) for T in solved)
             if any(meters < 0.01 and degrees < 0.5 for meters, degrees in differences):
                 continue  # where an earlier start already went
             candidate = self.solve(frame, view, T0, keypoints, matches)
-            if candidate is not None:
-                solved.append(candidate.T)
-            if candidate is None or (best is not None and candidate.score <= best.score):
+            if candidate is None:
                 continue
+            solved.append(candidate.T)
             if tracking:  # no jump on one frame's evidence
                 corroborated = motion.near(cfg, candidate.T, T_pred) or (
                     motion.plausible(cfg, candidate.T, T_last, frame_gap_s)
@@ -305,8 +304,35 @@ class JointEstimator:
             else:
                 corroborated = candidate.point_inliers >= cfg.points.min_inliers
             if corroborated:
-                best = candidate
-        return best
+                corroborated_solves.append(candidate)
+        if not corroborated_solves:
+            return None
+        best = max(corroborated_solves, key=lambda c: c.score)
+        return self._nearest_of_rivals(best, corroborated_solves, keypoints, matches, T_pred)
+
+    def _nearest_of_rivals(
+        self,
+        best: JointSolve,
+        candidates: list[JointSolve],
+        keypoints: Keypoints | None,
+        matches: PointMatches,
+        T_pred: np.ndarray,
+    ) -> JointSolve:
+        """`best`, unless a candidate nearer the prediction T_pred (4, 4) rivals it
+        (`relocalise.is_rival`: nearly its score, elsewhere, on other point matches): then
+        the evidence does not tell them apart (a repetitive texture agrees with poses a
+        period apart) and the nearest to the prediction is taken."""
+        from planeslam.tracking.relocalise import is_rival
+
+        masks = self.agreeing_masks(np.array([c.T for c in candidates]), keypoints, matches)
+        best_mask = masks[next(k for k, c in enumerate(candidates) if c is best)]
+        offset = np.linalg.norm(best.T[:3, 3] - T_pred[:3, 3])
+        chosen, chosen_offset = best, offset
+        for candidate, mask in zip(candidates, masks, strict=True):
+            nearer = np.linalg.norm(candidate.T[:3, 3] - T_pred[:3, 3])
+            if nearer < chosen_offset and is_rival(best, candidate, best_mask, mask, self.config):
+                chosen, chosen_offset = candidate, nearer
+        return chosen
 
     def point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
         """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from planeslam.core.camera import DepthNoiseConfig
-from planeslam.tracking import hypotheses
+from planeslam.tracking import hypotheses, motion
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.joint import JointEstimator, JointSolve
 from planeslam.tracking.keypoints import (
@@ -243,3 +243,55 @@ def _same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
     """Whether two (4, 4) poses are within 10 cm and 5 deg of each other."""
     meters, degrees = hypotheses.pose_difference(T_a, T_b)
     return meters <= 0.10 and degrees <= 5.0
+
+
+def relocalise_nearby(
+    frame: FrameView,
+    view: MapView,
+    T_last: np.ndarray,
+    gap_s: float,
+    keypoints: Keypoints | None,
+    matches: PointMatches,
+    joint: JointEstimator,
+) -> JointSolve | None:
+    """Right after a tracked frame at T_last (4, 4), `gap_s` seconds ago: the map-wide
+    primitive hypotheses that a plausible motion reaches (`motion.plausible`), refined by
+    `joint` (with the frame's point `matches` against the recent keyframes), the best taken
+    when no refined candidate within the same bound rivals it (`is_rival`). The bound does
+    the work of `relocalise`'s support test: a symmetric room's alternatives lie a quarter
+    or half turn away, beyond any motion between two frames, so a wide step (a robot's,
+    a slow frame rate) is placed from what the frame shares with the map nearby."""
+    cfg = joint.config
+    poses = primitive_hypotheses(frame, view, cfg)
+    reachable = np.array([motion.plausible(cfg, T, T_last, gap_s) for T in poses], dtype=bool)
+    poses = poses[reachable]
+    if not len(poses):
+        return None
+    scores = hypotheses.score_hypotheses(
+        frame,
+        view,
+        poses,
+        np.radians(cfg.max_angle_deg),
+        cfg.max_offset_m,
+        cfg.max_corner_distance_m,
+    )
+    distance = np.linalg.norm(poses[:, :3, 3] - T_last[:3, 3], axis=1)
+    order = _distinct(poses, np.lexsort((distance, -np.round(scores, 6))), cfg.relocalise_candidates)
+    solved = [
+        s
+        for s in (joint.solve(frame, view, T0, keypoints, matches) for T0 in poses[order])
+        if s is not None and motion.plausible(cfg, s.T, T_last, gap_s)
+    ]
+    if not solved:
+        return None
+    agreeing = joint.agreeing_masks(np.array([s.T for s in solved]), keypoints, matches)
+    ranked = sorted(
+        (_with_point_inliers(s, mask) for s, mask in zip(solved, agreeing, strict=True)),
+        key=lambda pair: -pair[0].score,
+    )
+    best, best_points = ranked[0]
+    for rival, rival_points in ranked[1:]:
+        if is_rival(best, rival, best_points, rival_points, cfg):
+            logger.debug("nearby search ambiguous: scores %.1f and %.1f", best.score, rival.score)
+            return None
+    return best

@@ -65,7 +65,7 @@ from planeslam.tracking.plane_path import (
     trusted,
 )
 from planeslam.tracking.registration import RegistrationStatus
-from planeslam.tracking.relocalise import relocalise
+from planeslam.tracking.relocalise import relocalise, relocalise_nearby
 from planeslam.tracking.result import TrackResult, track_result
 from planeslam.tracking.views import FrameView, MapView
 
@@ -304,7 +304,12 @@ class Tracker:
         # contradict it (a symmetric scene offers places a half-turn off); after a loss, a
         # segment confirms it.
         if cfg.relocalise and not view.empty:
-            placed = self.relocalise(frame, view, T_pred, keypoints)
+            if self.prediction_valid:
+                placed = relocalise_nearby(
+                    frame, view, T_from, frame_gap_s, keypoints, matches, self.joint
+                )
+            else:
+                placed = self.relocalise(frame, view, T_pred, keypoints)
             if placed is None:
                 reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
             elif self.prediction_valid and not motion.plausible(cfg, placed.T, T_from, frame_gap_s):
@@ -330,8 +335,7 @@ class Tracker:
         # 5. a partial plane pose near the prediction, completed by the motion.
         if self.prediction_valid:
             dense = self.dense.register(
-                T_pred,
-                good,
+                self._dense_start(frame, view, good, T_pred),
                 cloud,
                 rgbd,
                 reasons,
@@ -380,6 +384,20 @@ class Tracker:
         assoc = self.planes.associate(frame, view, T) if not view.empty else Association([], [])
         found = PoseConstraints(*dof, filled_by=(filled_by,), terms={"planes": len(assoc.planes)})
         return self._result(frame, view, T, assoc, path, "; ".join(reasons), found, keypoints)
+
+    def _dense_start(
+        self, frame: FrameView, view: MapView, planes: PoseSolve | None, T_pred: np.ndarray
+    ) -> np.ndarray:
+        """(4, 4) where the dense fallback starts: the trusted plane pose `planes`, its free
+        directions from the previous frame's pose (a direction nothing observes then
+        keeps the last pose, rather than the velocity of a slide the fallback itself
+        made, which grows frame by frame), else the prediction T_pred."""
+        if planes is None:
+            return T_pred
+        previous = self.dense.previous_pose
+        if planes.registration.status not in PARTIAL or previous is None:
+            return planes.T
+        return self.planes.completed(frame, view, planes, previous)[0]
 
     def _keypoints_agree(self, keypoints: Keypoints | None, T: np.ndarray) -> bool:
         """Whether at least `points.min_inliers` matches of the frame's keypoints (None:
