@@ -18,7 +18,8 @@ from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import PoseConstraints
 from planeslam.tracking.joint import JointSolve
-from planeslam.tracking.keypoints import LazyKeypoints
+from planeslam.tracking.keypoints import Keypoints, LazyKeypoints, PointMatches
+from planeslam.tracking.plane_path import PARTIAL
 from planeslam.tracking.relocalise import is_rival, primitive_hypotheses
 from planeslam.tracking.tracker import FrameView, MapView, Tracker
 
@@ -158,7 +159,9 @@ def test_a_far_relocalisation_right_after_a_tracked_frame_is_not_taken_alone(
     T_pred = perturb(T, 1.0, 60.0)
     result = tracker._track(frame, map_view(), T_pred, None, None, frame_gap_s=1 / 30)
     assert result.lost
-    assert "a relocalisation no plausible motion explains is not taken" in result.reason
+    assert (
+        "no corner, plane, edge or keypoint hypothesis within a plausible motion" in result.reason
+    )
     # A second later the same place is a plausible motion away: taken.
     later = tracker._track(frame, map_view(), T_pred, None, None, frame_gap_s=2.0)
     assert later.path == "relocalised"
@@ -319,52 +322,85 @@ def _no_matches():
     return PointMatches.empty()
 
 
+# A square room (floor z = 0, walls x = 0, y = 0, x = 3, y = 3) with the box of the room
+# corner above; corners at the room's four corners and the box's; world frame, metres.
+SQUARE_NORMALS = np.array(
+    [
+        [0, 0, 1.0],
+        [1.0, 0, 0],
+        [0, 1.0, 0],
+        [-1.0, 0, 0],
+        [0, -1.0, 0],
+        [0, 0, 1.0],
+        [1.0, 0, 0],
+        [0, 1.0, 0],
+    ]
+)
+SQUARE_D = np.array([0.0, 0.0, 0.0, 3.0, 3.0, -0.2, -1.0, -0.8])
+SQUARE_CORNERS = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1], [5, 6, 7]])
+SQUARE_CORNER_POINTS = np.array(
+    [[0, 0, 0], [3.0, 0, 0], [3.0, 3.0, 0], [0, 3.0, 0], [1.0, 0.8, 0.2]]
+)
+
+
+def square_room() -> MapView:
+    return MapView(
+        np.arange(8), SQUARE_NORMALS, SQUARE_D, np.arange(5), SQUARE_CORNERS, SQUARE_CORNER_POINTS
+    )
+
+
+def seen_in_square_room(T: np.ndarray, rows: list[int]) -> FrameView:
+    """The square room's planes `rows` (and the corners they complete) seen from T (4, 4)."""
+    T_cam_world = invert_pose(T)
+    n, d = [], []
+    for j in rows:
+        nc, dc = transform_plane(T_cam_world, SQUARE_NORMALS[j], SQUARE_D[j])
+        n.append(nc if dc > 0 else -nc)
+        d.append(abs(dc))
+    row = {j: k for k, j in enumerate(rows)}
+    ks = [k for k, c in enumerate(SQUARE_CORNERS) if all(j in row for j in c)]
+    p = SQUARE_CORNER_POINTS[ks] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    return FrameView(
+        np.arange(len(rows)),
+        np.array(n),
+        np.array(d),
+        np.ones(len(rows)),
+        np.array([[row[j] for j in SQUARE_CORNERS[k]] for k in ks]).reshape(-1, 3),
+        p.reshape(-1, 3),
+    )
+
+
 def test_symmetric_room_is_ambiguous_until_the_box_is_seen(rng: np.random.Generator) -> None:
     """A square room seen as floor + two walls + their corner fits at each of its four
     corners equally: relocalisation refuses it. The box's planes tell the corners apart."""
-    square_n = np.array(
-        [
-            [0, 0, 1.0],
-            [1.0, 0, 0],
-            [0, 1.0, 0],
-            [-1.0, 0, 0],
-            [0, -1.0, 0],
-            [0, 0, 1.0],
-            [1.0, 0, 0],
-            [0, 1.0, 0],
-        ]
-    )
-    square_d = np.array([0.0, 0.0, 0.0, 3.0, 3.0, -0.2, -1.0, -0.8])
-    corners = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1], [5, 6, 7]])
-    points = np.array([[0, 0, 0], [3.0, 0, 0], [3.0, 3.0, 0], [0, 3.0, 0], [1.0, 0.8, 0.2]])
-    view = MapView(np.arange(8), square_n, square_d, np.arange(5), corners, points)
-    T = camera_pose()
-    T_cam_world = invert_pose(T)
-
-    def seen(rows: list[int]) -> FrameView:
-        n, d = [], []
-        for j in rows:
-            nc, dc = transform_plane(T_cam_world, square_n[j], square_d[j])
-            n.append(nc if dc > 0 else -nc)
-            d.append(abs(dc))
-        row = {j: k for k, j in enumerate(rows)}
-        ks = [k for k, c in enumerate(corners) if all(j in row for j in c)]
-        p = points[ks] @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-        return FrameView(
-            np.arange(len(rows)),
-            np.array(n),
-            np.array(d),
-            np.ones(len(rows)),
-            np.array([[row[j] for j in corners[k]] for k in ks]).reshape(-1, 3),
-            p.reshape(-1, 3),
-        )
-
+    view, T = square_room(), camera_pose()
     tracker = Tracker(TrackingConfig(relocalise_min_planes=3))
     far = perturb(T, 1.0, 60.0)
-    assert tracker.relocalise(seen([0, 1, 2]), view, far) is None
-    solved = tracker.relocalise(seen([0, 1, 2, 5, 6, 7]), view, far)
+    assert tracker.relocalise(seen_in_square_room(T, [0, 1, 2]), view, far) is None
+    solved = tracker.relocalise(seen_in_square_room(T, [0, 1, 2, 5, 6, 7]), view, far)
     assert solved is not None
     assert_pose_close(solved.T, T, 1e-6, 1e-4)
+
+
+def test_a_robot_step_in_a_symmetric_room_is_placed_within_a_plausible_motion() -> None:
+    """Floor, two walls and their corner of a square room, 1 s after a tracked frame 20 cm
+    and 25 deg away (a robot's step, beyond the association gates): map-wide the room's
+    four corners fit alike, but a plausible motion (0.6 m/s, 60 deg/s) reaches only one
+    of them, so the frame is placed there. At 30 Hz no plausible motion reaches it; after a
+    loss the whole map is searched and the frame stays lost (ambiguous)."""
+    view, T = square_room(), camera_pose()
+    frame = seen_in_square_room(T, [0, 1, 2])
+    T_last = perturb(T, 0.2, 25.0)
+    tracker = Tracker(TrackingConfig(icp=False, rgbd_odometry=False))
+    assert tracker.planes.register(frame, view, T_last) is None  # beyond the gates
+    step = tracker._track(frame, view, T_last, None, None, frame_gap_s=1.0, T_last=T_last)
+    assert step.path == "relocalised"
+    assert_pose_close(step.T_world_cam, T, 1e-6, 1e-4)
+    fast = tracker._track(frame, view, T_last, None, None, frame_gap_s=1 / 30, T_last=T_last)
+    assert fast.lost
+    assert "no corner, plane, edge or keypoint hypothesis within a plausible motion" in fast.reason
+    tracker.expect_jump()
+    assert tracker._track(frame, view, T_last, None, None, frame_gap_s=1.0, T_last=T_last).lost
 
 
 def test_after_a_loss_a_plane_fit_to_the_stale_prediction_is_not_taken(
@@ -512,3 +548,70 @@ def test_a_plain_wall_slides_with_the_motion_and_its_plane_fixes_the_rest(
     after_loss = Tracker(TrackingConfig())
     after_loss.expect_jump()
     assert after_loss._track(frame, map_view(), T_pred, None, None, frame_gap_s=1 / 30).lost
+
+
+@pytest.mark.parametrize(
+    ("true_matches", "aliased_matches", "nearest"), [(25, 35, True), (15, 45, False)]
+)
+def test_a_repetitive_texture_does_not_pull_a_sliding_pose_a_period_away(
+    true_matches: int, aliased_matches: int, nearest: bool
+) -> None:
+    """Floor and one wall fix all but the slide along the wall; the wall's keypoints repeat
+    every 26 cm, so some match the copy one period along. When the aliased matches only
+    nearly outnumber the true ones (25 against 35: the scores are within
+    `relocalise_ambiguity`), the pose nearest the prediction is taken; when they clearly
+    win (15 against 45), the evidence decides."""
+    T = camera_pose()
+    period = np.array([0.0, 0.26, 0.0])
+    count = true_matches + aliased_matches
+    grid = np.random.default_rng(0).uniform([0.0, 0.3, 0.3], [0.0, 1.5, 1.5], (count, 3))
+    T_cam_world = invert_pose(T)
+    p_cam = grid @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    keypoints = Keypoints(
+        np.zeros((count, 2), np.float32),
+        p_cam,
+        np.zeros((count, 32), np.uint8),
+        np.broadcast_to(1e-6 * np.eye(3), (count, 3, 3)).copy(),
+    )
+    world = grid.copy()
+    world[true_matches:] += period  # matched with the next copy of the pattern
+    matches = PointMatches(
+        np.arange(count),
+        world,
+        np.broadcast_to(1e-6 * np.eye(3), (count, 3, 3)).copy(),
+        np.arange(count) % 3,  # from the three recent keyframes
+    )
+    tracker = Tracker(TrackingConfig())
+    T_pred, T_aliased = T.copy(), T.copy()
+    T_pred[:3, 3] += [0.0, 0.03, 0.0]  # the prediction is 3 cm off along the wall
+    T_aliased[:3, 3] += period
+    frame = observe(T, [0, 1], np.random.default_rng(1))
+    best = tracker.joint.best(
+        frame, map_view(), [T_pred, T_aliased], keypoints, matches, T_pred, True, T_pred, 1.0
+    )
+    assert best is not None
+    assert_pose_close(best.T, T if nearest else T_aliased, 1e-3, 1e-3)
+
+
+def test_the_dense_fallback_starts_a_slide_at_the_last_pose_not_the_velocity(
+    rng: np.random.Generator,
+) -> None:
+    """One wall in view: its plane fixes the distance to it and the tilt; the dense fallback
+    starts there, with the slide along the wall at the last tracked pose. Started at the
+    constant-velocity prediction, a slide that RGB-D odometry cannot observe kept the
+    velocity the fallback itself had made and grew frame by frame (1.2 to 7 cm per frame
+    on a plain wall, up to 30 cm per frame on a loop with posters)."""
+    T = camera_pose()
+    frame = observe(T, [1], rng)  # the wall x = 0
+    T_last, T_pred = T.copy(), T.copy()
+    T_last[:3, 3] += [0.03, -0.04, 0.0]  # 3 cm farther from the wall, 4 cm back along it
+    T_pred[:3, 3] += [0.02, 0.05, 0.0]
+    tracker = Tracker(TrackingConfig())
+    tracker.dense.remember(0.0, None, None, T_last)
+    good = tracker.planes.register(frame, map_view(), T_pred)
+    assert good is not None and good.registration.status in PARTIAL
+    start = tracker.planes.free_from(frame, map_view(), good, tracker.dense.previous_pose)
+    assert start[0, 3] == pytest.approx(T[0, 3], abs=1e-9)  # from the wall
+    np.testing.assert_allclose(start[1:3, 3], T_last[1:3, 3], atol=1e-9)  # the last pose's
+    np.testing.assert_allclose(start[:3, :3], T[:3, :3], atol=1e-6)
+    assert tracker.planes.free_from(frame, map_view(), good, None) is good.T

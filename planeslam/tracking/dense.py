@@ -119,42 +119,57 @@ class DenseFallback:
 
     def register(
         self,
-        T_start: np.ndarray,
+        starts: list[np.ndarray],
         cloud: np.ndarray | None,
         rgbd: RgbdPair | None,
         reasons: list[str],
         slides: Callable[[], bool] = lambda: False,
         keypoints_agree: Callable[[np.ndarray], bool] = lambda T: False,
     ) -> DensePose | None:
-        """RGB-D odometry, then ICP, against the previous frame from T_start (4, 4), taken
-        when the result overlaps the
-        previous frame's depth and its colours do not contradict it. When the frame
-        `slides()` (its depth mostly on parallel planes, which any slide along them still
-        overlaps) and the colours cannot tell, `keypoints_agree(T)` must hold. Why a result
-        was refused is appended to `reasons`."""
+        """RGB-D odometry, then ICP, against the previous frame from each of the (4, 4)
+        `starts` in turn; the first result taken (`_acceptable`), or None."""
         methods: list[tuple[Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
             methods.append((Primitive.ICP, lambda T0: self._icp(cloud, T0)))
-        for kind, method in methods:
-            T = method(T_start)
-            if T is None:
-                continue
-            if not self.agrees(cloud, T):
-                reasons.append(f"{kind.value} result does not overlap the previous frame")
-                continue
-            colours = self.colour_check(cloud, rgbd, T)
-            if colours is ColourCheck.CONTRADICTS:
-                reasons.append(f"{kind.value} result: the colours contradict the previous frame")
-                continue
-            if colours is ColourCheck.UNKNOWN and slides() and not keypoints_agree(T):
-                reasons.append(
-                    f"{kind.value} result unconfirmed: the frame's depth is parallel planes "
-                    "and its keypoints do not agree"
-                )
-                continue
-            return DensePose(T, kind)
+        for T_start in starts:
+            for kind, method in methods:
+                T = method(T_start)
+                if T is not None and self._acceptable(
+                    kind, T, cloud, rgbd, reasons, slides, keypoints_agree
+                ):
+                    return DensePose(T, kind)
         return None
+
+    def _acceptable(
+        self,
+        kind: Primitive,
+        T: np.ndarray,
+        cloud: np.ndarray | None,
+        rgbd: RgbdPair | None,
+        reasons: list[str],
+        slides: Callable[[], bool],
+        keypoints_agree: Callable[[np.ndarray], bool],
+    ) -> bool:
+        """Whether the dense pose T (4, 4) by `kind` overlaps the previous frame's depth and
+        its colours do not contradict it. When the frame `slides()` (its depth mostly on
+        parallel planes, which any slide along them still overlaps) and the colours cannot
+        tell, `keypoints_agree(T)` must hold. Why a result was refused is appended to
+        `reasons`."""
+        if not self.agrees(cloud, T):
+            reasons.append(f"{kind.value} result does not overlap the previous frame")
+            return False
+        colours = self.colour_check(cloud, rgbd, T)
+        if colours is ColourCheck.CONTRADICTS:
+            reasons.append(f"{kind.value} result: the colours contradict the previous frame")
+            return False
+        if colours is ColourCheck.UNKNOWN and slides() and not keypoints_agree(T):
+            reasons.append(
+                f"{kind.value} result unconfirmed: the frame's depth is parallel planes "
+                "and its keypoints do not agree"
+            )
+            return False
+        return True
 
     def _points(self, cloud: np.ndarray) -> np.ndarray:
         """(P, 3) float64 valid camera-frame points of an (H, W, 3) organised cloud for ICP,

@@ -322,8 +322,6 @@ class JointEstimator:
         (`relocalise.is_rival`: nearly its score, elsewhere, on other point matches): then
         the evidence does not tell them apart (a repetitive texture agrees with poses a
         period apart) and the nearest to the prediction is taken."""
-        from planeslam.tracking.relocalise import is_rival
-
         masks = self.agreeing_masks(np.array([c.T for c in candidates]), keypoints, matches)
         best_mask = masks[next(k for k, c in enumerate(candidates) if c is best)]
         offset = np.linalg.norm(best.T[:3, 3] - T_pred[:3, 3])
@@ -349,6 +347,30 @@ class JointEstimator:
             cfg.min_inliers,
         )
         return None if found is None else found.T_world_cam
+
+
+def is_rival(
+    best: JointSolve,
+    other: JointSolve,
+    best_points: np.ndarray,
+    other_points: np.ndarray,
+    cfg: TrackingConfig,
+) -> bool:
+    """Whether `other` makes a relocalisation to `best` ambiguous: it scores at least
+    `relocalise_ambiguity` of the best, lies elsewhere (beyond 10 cm or 5 deg) and is not the
+    same place fitted worse, which explains the same point matches (the (M,) bool masks of
+    the matches agreeing with each: half of the other's, and at least `points.min_inliers`,
+    are the best's too). A symmetric room's other corners match other keypoints, or none."""
+    if other.score < cfg.relocalise_ambiguity * best.score or _same_pose(other.T, best.T):
+        return False
+    shared = np.count_nonzero(other_points & best_points)
+    return bool(shared < max(cfg.points.min_inliers, 0.5 * np.count_nonzero(other_points)))
+
+
+def _same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
+    """Whether two (4, 4) poses are within 10 cm and 5 deg of each other."""
+    meters, degrees = pose_difference(T_a, T_b)
+    return meters <= 0.10 and degrees <= 5.0
 
 
 def estimator_settings(

@@ -193,6 +193,15 @@ class PlanePath:
         dof = (3 - len(reg.unobservable_rotation_axes), 3 - len(reg.unobservable_translation_dirs))
         return reg.T, dof
 
+    def free_from(
+        self, frame: FrameView, view: MapView, solve: PoseSolve, T_other: np.ndarray | None
+    ) -> np.ndarray:
+        """(4, 4) the pose of `solve`, the directions its planes leave free from T_other
+        (`completed`; without T_other, or when the planes fixed all six, its own)."""
+        if solve.registration.status not in PARTIAL or T_other is None:
+            return solve.T
+        return self.completed(frame, view, solve, T_other)[0]
+
     def _inliers(
         self, frame: FrameView, assoc: Association, reg: RegistrationResult
     ) -> Association | None:

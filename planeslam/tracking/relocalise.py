@@ -24,7 +24,7 @@ import numpy as np
 from planeslam.core.camera import DepthNoiseConfig
 from planeslam.tracking import hypotheses, motion
 from planeslam.tracking.config import TrackingConfig
-from planeslam.tracking.joint import JointEstimator, JointSolve
+from planeslam.tracking.joint import JointEstimator, JointSolve, is_rival
 from planeslam.tracking.keypoints import (
     KeypointMap,
     Keypoints,
@@ -108,25 +108,30 @@ def relocalisation_candidates(
         poses = np.concatenate([poses, primitive_hypotheses(frame, view, cfg)])
     if not len(poses):
         return Candidates(np.zeros((0, 4, 4)), matches)
-    scores = np.zeros(len(poses))
-    if not view.empty:
-        scores = hypotheses.score_hypotheses(
-            frame,
-            view,
-            poses,
-            np.radians(cfg.max_angle_deg),
-            cfg.max_offset_m,
-            cfg.max_corner_distance_m,
-        )
+    scores = np.zeros(len(poses)) if view.empty else _scores(frame, view, poses, cfg)
     if len(p_cam):  # the points' say, for the point pose and the best of the rest
         top = np.argsort(-scores, kind="stable")[: 8 * cfg.relocalise_candidates]
         top = np.union1d(top, [0])  # the point RANSAC pose comes first
         agreeing = hypotheses.agreeing_matches(poses[top], p_cam, matches.points_world, threshold)
         scores[top] += np.count_nonzero(agreeing, axis=1) / 10.0
-    distance = np.linalg.norm(poses[:, :3, 3] - T_pred[:3, 3], axis=1)
-    order = np.lexsort((distance, -np.round(scores, 6)))
-    order = _distinct(poses, order, cfg.relocalise_candidates)
-    return Candidates(poses[order], matches)
+    return Candidates(_best_distinct(poses, scores, T_pred, cfg.relocalise_candidates), matches)
+
+
+def _scores(frame: FrameView, view: MapView, poses: np.ndarray, cfg: TrackingConfig) -> np.ndarray:
+    """(H,) `hypotheses.score_hypotheses` of (H, 4, 4) poses under the tracking gates."""
+    gate = np.radians(cfg.max_angle_deg)
+    return hypotheses.score_hypotheses(
+        frame, view, poses, gate, cfg.max_offset_m, cfg.max_corner_distance_m
+    )
+
+
+def _best_distinct(
+    poses: np.ndarray, scores: np.ndarray, T_near: np.ndarray, count: int
+) -> np.ndarray:
+    """(K, 4, 4): the `count` best-scored of (H, 4, 4) `poses`, ties to the nearest to
+    T_near (4, 4), without poses within 2 cm and 2 deg of a better one (`_distinct`)."""
+    distance = np.linalg.norm(poses[:, :3, 3] - T_near[:3, 3], axis=1)
+    return poses[_distinct(poses, np.lexsort((distance, -np.round(scores, 6))), count)]
 
 
 def could_be_enough(frame: FrameView, matches: int, cfg: TrackingConfig) -> bool:
@@ -189,12 +194,8 @@ def relocalise(
     ]
     if not solved:
         return None
-    agreeing = joint.agreeing_masks(np.array([s.T for s in solved]), keypoints, candidates.matches)
-    ranked = sorted(
-        (_with_point_inliers(s, mask) for s, mask in zip(solved, agreeing, strict=True)),
-        key=lambda pair: -pair[0].score,
-    )
-    best, best_points = ranked[0]
+    ranked = _ranked(solved, keypoints, candidates.matches, joint)
+    best = ranked[0][0]
     planes = best.constraints.terms["planes"]
     enough = best.point_inliers >= cfg.relocalise_min_points or (
         planes >= cfg.relocalise_min_planes
@@ -205,9 +206,32 @@ def relocalise(
             "relocalisation: best candidate has too little support (%s)", best.constraints.terms
         )
         return None
+    return _unrivalled(ranked, cfg)
+
+
+def _ranked(
+    solved: list[JointSolve],
+    keypoints: Keypoints | None,
+    matches: PointMatches,
+    joint: JointEstimator,
+) -> list[tuple[JointSolve, np.ndarray]]:
+    """The refined candidates `solved`, each with its point term counting the `matches`
+    that agree with it and that (M,) bool mask, best score first."""
+    agreeing = joint.agreeing_masks(np.array([s.T for s in solved]), keypoints, matches)
+    return sorted(
+        (_with_point_inliers(s, mask) for s, mask in zip(solved, agreeing, strict=True)),
+        key=lambda pair: -pair[0].score,
+    )
+
+
+def _unrivalled(
+    ranked: list[tuple[JointSolve, np.ndarray]], cfg: TrackingConfig
+) -> JointSolve | None:
+    """The first of `ranked` (`_ranked`), or None when another rivals it (`is_rival`)."""
+    best, best_points = ranked[0]
     for rival, rival_points in ranked[1:]:
         if is_rival(best, rival, best_points, rival_points, cfg):
-            logger.debug("relocalisation ambiguous: scores %.1f and %.1f", best.score, rival.score)
+            logger.debug("ambiguous: scores %.1f and %.1f", best.score, rival.score)
             return None
     return best
 
@@ -219,30 +243,6 @@ def _with_point_inliers(solve: JointSolve, agreeing: np.ndarray) -> tuple[JointS
     look equally supported."""
     terms = {**solve.constraints.terms, "points": int(np.count_nonzero(agreeing))}
     return replace(solve, constraints=replace(solve.constraints, terms=terms)), agreeing
-
-
-def is_rival(
-    best: JointSolve,
-    other: JointSolve,
-    best_points: np.ndarray,
-    other_points: np.ndarray,
-    cfg: TrackingConfig,
-) -> bool:
-    """Whether `other` makes a relocalisation to `best` ambiguous: it scores at least
-    `relocalise_ambiguity` of the best, lies elsewhere (beyond 10 cm or 5 deg) and is not the
-    same place fitted worse, which explains the same point matches (the (M,) bool masks of
-    the matches agreeing with each: half of the other's, and at least `points.min_inliers`,
-    are the best's too). A symmetric room's other corners match other keypoints, or none."""
-    if other.score < cfg.relocalise_ambiguity * best.score or _same_pose(other.T, best.T):
-        return False
-    shared = np.count_nonzero(other_points & best_points)
-    return bool(shared < max(cfg.points.min_inliers, 0.5 * np.count_nonzero(other_points)))
-
-
-def _same_pose(T_a: np.ndarray, T_b: np.ndarray) -> bool:
-    """Whether two (4, 4) poses are within 10 cm and 5 deg of each other."""
-    meters, degrees = hypotheses.pose_difference(T_a, T_b)
-    return meters <= 0.10 and degrees <= 5.0
 
 
 def relocalise_nearby(
@@ -263,35 +263,15 @@ def relocalise_nearby(
     a slow frame rate) is placed from what the frame shares with the map nearby."""
     cfg = joint.config
     poses = primitive_hypotheses(frame, view, cfg)
-    reachable = np.array([motion.plausible(cfg, T, T_last, gap_s) for T in poses], dtype=bool)
-    poses = poses[reachable]
+    poses = poses[[motion.plausible(cfg, T, T_last, gap_s) for T in poses]]
     if not len(poses):
         return None
-    scores = hypotheses.score_hypotheses(
-        frame,
-        view,
-        poses,
-        np.radians(cfg.max_angle_deg),
-        cfg.max_offset_m,
-        cfg.max_corner_distance_m,
+    starts = _best_distinct(
+        poses, _scores(frame, view, poses, cfg), T_last, cfg.relocalise_candidates
     )
-    distance = np.linalg.norm(poses[:, :3, 3] - T_last[:3, 3], axis=1)
-    order = _distinct(poses, np.lexsort((distance, -np.round(scores, 6))), cfg.relocalise_candidates)
     solved = [
         s
-        for s in (joint.solve(frame, view, T0, keypoints, matches) for T0 in poses[order])
+        for s in (joint.solve(frame, view, T0, keypoints, matches) for T0 in starts)
         if s is not None and motion.plausible(cfg, s.T, T_last, gap_s)
     ]
-    if not solved:
-        return None
-    agreeing = joint.agreeing_masks(np.array([s.T for s in solved]), keypoints, matches)
-    ranked = sorted(
-        (_with_point_inliers(s, mask) for s, mask in zip(solved, agreeing, strict=True)),
-        key=lambda pair: -pair[0].score,
-    )
-    best, best_points = ranked[0]
-    for rival, rival_points in ranked[1:]:
-        if is_rival(best, rival, best_points, rival_points, cfg):
-            logger.debug("nearby search ambiguous: scores %.1f and %.1f", best.score, rival.score)
-            return None
-    return best
+    return _unrivalled(_ranked(solved, keypoints, matches, joint), cfg) if solved else None

@@ -10,14 +10,19 @@ path that gives a pose its evidence supports:
    corners, edge ends and keypoints with depth, from the partial plane pose, a point
    RANSAC's pose and the prediction; taken near the prediction, or at a plausible motion
    (`motion.plausible`) with enough points or planes; after a loss, on points only.
-3. `relocalised` (`relocalise`): a whole-map search, verified (enough support, no rival
-   elsewhere). Right after a tracked frame it is taken only when a plausible motion
-   explains it and, between close frames, the colours do not contradict it; after a loss
-   the segment confirms it (`segments`: a second relocalisation must agree).
-4. `odometry` / `icp` (`dense`, right after a tracked frame only): RGB-D odometry, then
+   A rival nearer the prediction beats the best-supported pose (a repetitive texture
+   agrees with poses a period apart).
+3. `odometry` / `icp` (`dense`, right after a tracked frame only): RGB-D odometry, then
    ICP, against the previous frame, each accepted by its own overlap and colours (a plane
-   pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`).
+   pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`). They
+   start from the plane pose with its free directions at the previous frame's, so a
+   direction nothing observes does not run away with the prediction's velocity.
    Keypoints that agree on no pose are no evidence against them.
+4. `relocalised` (`relocalise`): a map-wide search. Right after a tracked frame, among
+   the hypotheses a plausible motion reaches (`relocalise_nearby`: no rival within that
+   bound; between close frames, the colours must not contradict it); after a loss, over
+   the whole map, verified (enough support, no rival anywhere) and confirmed by the
+   segment (`segments`: a second relocalisation must agree).
 5. `planes+motion` (right after a tracked frame): a partial plane pose near the
    prediction, the constant-velocity motion filling the directions it leaves free.
 6. `lost`: the pose is the prediction, and the frame is left out of the trajectory.
@@ -236,14 +241,12 @@ class Tracker:
             and points is not NO_KEYPOINTS
             and good.registration.translation_observability < cfg.weak_translation_share
         )
+        close = frame_gap_s <= cfg.fast_max_gap_s
         if (
             fast
             and good is not None
             and (
-                (
-                    not weak
-                    and motion.near(cfg, good.T, T_pred, frame_gap_s <= cfg.fast_max_gap_s, T_last)
-                )
+                (not weak and motion.near(cfg, good.T, T_pred, close, T_last))
                 or self._keypoints_agree(points.get(), good.T)
             )
         ):
@@ -253,17 +256,13 @@ class Tracker:
             return self._result(
                 frame, view, good.T, assoc, TrackingPath.PLANES, "", found, points.value
             )
-        reasons = [
-            "no plane matched the map under the prediction"
-            if solve is None
-            else f"plane pose {solve.registration.status.value}"
-            + ("" if good is not None else " with residuals beyond the gates")
-            + (
-                " with a weakly fixed translation the keypoints do not confirm"
-                if weak and fast
-                else ""
+        reasons = ["no plane matched the map under the prediction"]
+        if solve is not None:
+            reasons[0] = f"plane pose {solve.registration.status.value}" + (
+                "" if good is not None else " with residuals beyond the gates"
             )
-        ]
+            if weak and fast:
+                reasons[0] += " with a weakly fixed translation the keypoints do not confirm"
         # 2. One estimate over every primitive, from every start that needs no plane prior.
         keypoints = points.get()
         matches = PointMatches.empty()
@@ -299,10 +298,30 @@ class Tracker:
                 best.constraints,
                 keypoints,
             )
-        # 3. A whole-map search, taken right after a tracked frame only where a plausible
-        # motion since then explains it and, between close frames, the colours do not
-        # contradict it (a symmetric scene offers places a half-turn off); after a loss, a
-        # segment confirms it.
+        # 3. The dense fallback (keypoints that agree on no pose are no evidence of a jump),
+        # from the plane pose with its free directions at the last pose (not the velocity: a
+        # direction nothing observes would keep a slide the fallback made, and grow it),
+        # then, between far frames, at the prediction (a robot's step is too wide).
+        if self.prediction_valid:
+            free_at = [self.dense.previous_pose] + ([] if close else [T_pred])
+            dense = self.dense.register(
+                [T_pred]
+                if good is None
+                else [self.planes.free_from(frame, view, good, T) for T in free_at],
+                cloud,
+                rgbd,
+                reasons,
+                slides,
+                partial(self._keypoints_agree, keypoints),
+            )
+            if dense is not None:
+                return self._completed(
+                    frame, view, good, dense.T, dense.filled_by, reasons, keypoints
+                )
+        # 4. A map-wide search: right after a tracked frame, among the hypotheses a
+        # plausible motion since then reaches (a symmetric scene's other places lie a
+        # quarter or half turn away), and between close frames only where the colours do
+        # not contradict it; after a loss, over the whole map, and a segment confirms it.
         if cfg.relocalise and not view.empty:
             if self.prediction_valid:
                 placed = relocalise_nearby(
@@ -311,12 +330,14 @@ class Tracker:
             else:
                 placed = self.relocalise(frame, view, T_pred, keypoints)
             if placed is None:
-                reasons.append("no corner, plane, edge or keypoint hypothesis fits the map")
-            elif self.prediction_valid and not motion.plausible(cfg, placed.T, T_from, frame_gap_s):
-                reasons.append("a relocalisation no plausible motion explains is not taken")
+                reasons.append(
+                    "no corner, plane, edge or keypoint hypothesis "
+                    + ("within a plausible motion " if self.prediction_valid else "")
+                    + "fits the map"
+                )
             elif (
                 self.prediction_valid
-                and frame_gap_s <= cfg.fast_max_gap_s
+                and close
                 and self.dense.colour_check(cloud, rgbd, placed.T) is ColourCheck.CONTRADICTS
             ):
                 reasons.append("a relocalisation whose colours contradict the last frame")
@@ -331,31 +352,16 @@ class Tracker:
                     placed.constraints,
                     keypoints,
                 )
-        # 4. The dense fallback (keypoints that agree on no pose are no evidence of a jump);
-        # 5. a partial plane pose near the prediction, completed by the motion.
-        if self.prediction_valid:
-            dense = self.dense.register(
-                self._dense_start(frame, view, good, T_pred),
-                cloud,
-                rgbd,
-                reasons,
-                slides,
-                partial(self._keypoints_agree, keypoints),
-            )
-            if dense is not None:
-                return self._completed(
-                    frame, view, good, dense.T, dense.filled_by, reasons, keypoints
-                )
-            if (
-                good is not None
-                and good.registration.status in PARTIAL
-                and frame_gap_s <= cfg.fast_max_gap_s
-                and motion.near(cfg, good.T, T_pred, True, T_last)
-            ):
-                reasons.append("the planes agree with the motion")
-                return self._completed(
-                    frame, view, good, T_pred, Primitive.MOTION, reasons, keypoints
-                )
+        # 5. A partial plane pose near the prediction, completed by the motion.
+        if (
+            self.prediction_valid
+            and good is not None
+            and good.registration.status in PARTIAL
+            and close
+            and motion.near(cfg, good.T, T_pred, True, T_last)
+        ):
+            reasons.append("the planes agree with the motion")
+            return self._completed(frame, view, good, T_pred, Primitive.MOTION, reasons, keypoints)
         # 6. Lost.
         reasons.append("no fallback registered the frame")
         if view.empty and self.empty_map_starts:
@@ -384,20 +390,6 @@ class Tracker:
         assoc = self.planes.associate(frame, view, T) if not view.empty else Association([], [])
         found = PoseConstraints(*dof, filled_by=(filled_by,), terms={"planes": len(assoc.planes)})
         return self._result(frame, view, T, assoc, path, "; ".join(reasons), found, keypoints)
-
-    def _dense_start(
-        self, frame: FrameView, view: MapView, planes: PoseSolve | None, T_pred: np.ndarray
-    ) -> np.ndarray:
-        """(4, 4) where the dense fallback starts: the trusted plane pose `planes`, its free
-        directions from the previous frame's pose (a direction nothing observes then
-        keeps the last pose, rather than the velocity of a slide the fallback itself
-        made, which grows frame by frame), else the prediction T_pred."""
-        if planes is None:
-            return T_pred
-        previous = self.dense.previous_pose
-        if planes.registration.status not in PARTIAL or previous is None:
-            return planes.T
-        return self.planes.completed(frame, view, planes, previous)[0]
 
     def _keypoints_agree(self, keypoints: Keypoints | None, T: np.ndarray) -> bool:
         """Whether at least `points.min_inliers` matches of the frame's keypoints (None:
