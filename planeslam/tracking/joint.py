@@ -319,7 +319,7 @@ class JointEstimator:
         T_pred: np.ndarray,
     ) -> JointSolve:
         """`best`, unless a candidate nearer the prediction T_pred (4, 4) rivals it
-        (`relocalise.is_rival`: nearly its score, elsewhere, on other point matches): then
+        (`is_rival`: nearly its score, elsewhere, on other point matches): then
         the evidence does not tell them apart (a repetitive texture agrees with poses a
         period apart) and the nearest to the prediction is taken."""
         masks = self.agreeing_masks(np.array([c.T for c in candidates]), keypoints, matches)

@@ -12,6 +12,8 @@ prediction, so a symmetric room keeps its orientation when nothing else tells th
 
 `relocalise` refines the candidates by the joint estimate and takes the best only with
 more support than a minimal set gives and without a rival elsewhere (`is_rival`).
+`relocalise_nearby` is the search right after a tracked frame: the primitive hypotheses a
+plausible motion reaches, the best taken without a rival within that bound.
 """
 
 from __future__ import annotations
