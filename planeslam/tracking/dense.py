@@ -127,19 +127,24 @@ class DenseFallback:
         keypoints_agree: Callable[[np.ndarray], bool] = lambda T: False,
     ) -> DensePose | None:
         """RGB-D odometry, then ICP, against the previous frame from each of the (4, 4)
-        `starts` in turn; the first result taken (`_acceptable`), or None."""
+        `starts`: per start the first result taken (`_acceptable`); of those, the one whose
+        colours differ least from the previous frame's (`colour_difference`; ties to the
+        earlier start), or None."""
         methods: list[tuple[Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
             methods.append((Primitive.ICP, lambda T0: self._icp(cloud, T0)))
+        taken: list[tuple[float, DensePose]] = []
         for T_start in starts:
             for kind, method in methods:
                 T = method(T_start)
                 if T is not None and self._acceptable(
                     kind, T, cloud, rgbd, reasons, slides, keypoints_agree
                 ):
-                    return DensePose(T, kind)
-        return None
+                    measured = self.colour_difference(cloud, rgbd, T)
+                    taken.append((np.inf if measured is None else measured[0], DensePose(T, kind)))
+                    break
+        return min(taken, key=lambda pair: pair[0])[1] if taken else None
 
     def _acceptable(
         self,
@@ -233,10 +238,28 @@ class DenseFallback:
     ) -> ColourCheck:
         """Whether this frame's colours, moved by T_world_cam (4, 4) into the previous frame,
         match the colours there where the depths agree (`ColourCheck`): the median grey
-        difference against COLOUR_MATCH_SHARE of the frame's texture contrast (the median
-        absolute deviation of its grey levels) and COLOUR_MIN_CONTRAST."""
-        if cloud is None or rgbd is None or self.previous_rgbd is None or self.camera is None:
+        difference (`colour_difference`) against COLOUR_MATCH_SHARE of the frame's texture
+        contrast (the median absolute deviation of its grey levels) and COLOUR_MIN_CONTRAST."""
+        measured = self.colour_difference(cloud, rgbd, T_world_cam)
+        if measured is None:
             return ColourCheck.UNKNOWN
+        difference, contrast = measured
+        if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
+            return ColourCheck.CONTRADICTS
+        if contrast < COLOUR_MIN_CONTRAST:
+            return ColourCheck.PLAIN
+        if difference <= COLOUR_MATCH_SHARE * contrast:
+            return ColourCheck.CONFIRMS
+        return ColourCheck.UNKNOWN
+
+    def colour_difference(
+        self, cloud: np.ndarray | None, rgbd: RgbdPair | None, T_world_cam: np.ndarray
+    ) -> tuple[float, float] | None:
+        """(median grey difference, texture contrast) in grey levels of this frame's colours
+        moved by T_world_cam (4, 4) into the previous frame, where the depths agree (every
+        `icp_stride`-th pixel, at least 100); None without colours or overlap."""
+        if cloud is None or rgbd is None or self.previous_rgbd is None or self.camera is None:
+            return None
         assert self.previous_pose is not None, "set with the previous frame"
         cam, s = self.camera, self.config.icp_stride
         xyz = cloud[::s, ::s].reshape(-1, 3)
@@ -253,18 +276,11 @@ class DenseFallback:
         z_prev = depth_prev[v[inside], u[inside]]
         shared = (z_prev > 0) & (np.abs(z_prev - p[inside, 2]) <= self.config.icp_max_distance_m)
         if np.count_nonzero(shared) < 100:
-            return ColourCheck.UNKNOWN
+            return None
         g_cur = grey[inside][shared]
         g_prev = self._grey(rgb_prev)[v[inside][shared], u[inside][shared]]
         difference = float(np.median(np.abs(g_prev - g_cur)))
-        contrast = float(np.median(np.abs(g_cur - np.median(g_cur))))
-        if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
-            return ColourCheck.CONTRADICTS
-        if contrast < COLOUR_MIN_CONTRAST:
-            return ColourCheck.PLAIN
-        if difference <= COLOUR_MATCH_SHARE * contrast:
-            return ColourCheck.CONFIRMS
-        return ColourCheck.UNKNOWN
+        return difference, float(np.median(np.abs(g_cur - np.median(g_cur))))
 
     def _grey(self, rgb: np.ndarray) -> np.ndarray:
         """`smooth_grey(rgb)`, computed once per image: a frame's colours are compared for

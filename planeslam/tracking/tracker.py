@@ -14,10 +14,9 @@ path that gives a pose its evidence supports:
    agrees with poses a period apart).
 3. `odometry` / `icp` (`dense`, right after a tracked frame only): RGB-D odometry, then
    ICP, against the previous frame, each accepted by its own overlap and colours (a plane
-   pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`). They
-   start from the plane pose with its free directions at the previous frame's, so a
-   direction nothing observes does not run away with the prediction's velocity.
-   Keypoints that agree on no pose are no evidence against them.
+   pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`), started
+   with the free directions at the previous frame's pose and at the prediction, the
+   colours deciding. Keypoints that agree on no pose are no evidence against them.
 4. `relocalised` (`relocalise`): a map-wide search. Right after a tracked frame, among
    the hypotheses a plausible motion reaches (`relocalise_nearby`: no rival within that
    bound; between close frames, the colours must not contradict it); after a loss, over
@@ -299,15 +298,16 @@ class Tracker:
                 keypoints,
             )
         # 3. The dense fallback (keypoints that agree on no pose are no evidence of a jump),
-        # from the plane pose with its free directions at the last pose (not the velocity: a
-        # direction nothing observes would keep a slide the fallback made, and grow it),
-        # then, between far frames, at the prediction (a robot's step is too wide).
+        # from the plane pose with its free directions at the last pose (a direction nothing
+        # observes would otherwise keep a slide the fallback made, and grow it) and at the
+        # prediction (a wide step), the colours deciding between them.
         if self.prediction_valid:
-            free_at = [self.dense.previous_pose] + ([] if close else [T_pred])
+            starts = [T_pred] if good is None else [good.T]
+            if good is not None and good.registration.status in PARTIAL:
+                free_at = [self.dense.previous_pose, T_pred]
+                starts = [self.planes.free_from(frame, view, good, T) for T in free_at]
             dense = self.dense.register(
-                [T_pred]
-                if good is None
-                else [self.planes.free_from(frame, view, good, T) for T in free_at],
+                starts,
                 cloud,
                 rgbd,
                 reasons,
@@ -318,10 +318,9 @@ class Tracker:
                 return self._completed(
                     frame, view, good, dense.T, dense.filled_by, reasons, keypoints
                 )
-        # 4. A map-wide search: right after a tracked frame, among the hypotheses a
-        # plausible motion since then reaches (a symmetric scene's other places lie a
-        # quarter or half turn away), and between close frames only where the colours do
-        # not contradict it; after a loss, over the whole map, and a segment confirms it.
+        # 4. A map-wide search: right after a tracked frame, among the hypotheses a plausible
+        # motion reaches (a symmetric scene's other places lie a quarter turn away); after
+        # a loss, over the whole map, and a segment confirms it.
         if cfg.relocalise and not view.empty:
             if self.prediction_valid:
                 placed = relocalise_nearby(
