@@ -297,10 +297,8 @@ class Tracker:
                 best.constraints,
                 keypoints,
             )
-        # 3. The dense fallback (keypoints that agree on no pose are no evidence of a jump),
-        # from the plane pose with its free directions at the last pose (a direction nothing
-        # observes would otherwise keep a slide the fallback made, and grow it) and at the
-        # prediction (a wide step), the colours deciding between them.
+        # 3. The dense fallback, free directions at the last pose (else a slide nothing
+        # observes keeps the velocity it made, and grows) and at the prediction (a wide step).
         if self.prediction_valid:
             starts = [T_pred] if good is None else [good.T]
             if good is not None and good.registration.status in PARTIAL:
