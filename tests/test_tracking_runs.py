@@ -1,6 +1,7 @@
 """Tracking on whole sequences: wide baselines, a second depth model with another camera,
-a jump into unmapped space bridged by a segment, localisation in a saved map, and honest
-output when frames are lost (left out of trajectory.txt, counted, no ATE without enough)."""
+a jump into unmapped space bridged by a segment, localisation in a saved map, keypoints
+that agree on no pose not stopping the dense fallback, and honest output when frames are
+lost (left out of trajectory.txt, counted, no ATE without enough)."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from planeslam.mapping.world_map import Map
 from planeslam.sim.render import render_frame
 from planeslam.sim.scenes import SceneOptions, room_boxes_loop
 from planeslam.sim.sequence import synthesize
-from planeslam.slam import SLAM, run_frames
+from planeslam.slam import SLAM, FrameResult, run_frames
 from planeslam.tracking.segments import Segment
 
 pytestmark = pytest.mark.integration  # tracking on rendered and real sequences, whole runs
@@ -231,3 +232,51 @@ def test_the_first_frame_is_the_dense_fallbacks_previous_frame() -> None:
     T_seg_cam = segment.track(1, second, dataset[1].rgb, dataset[1].depth_m)
     assert T_seg_cam is not None  # a segment's second frame: the same fallback
     assert np.linalg.norm(T_seg_cam[:3, 3] - results[1].T_world_cam[:3, 3]) < 0.01
+
+
+def test_keypoints_that_agree_on_no_pose_still_let_the_dense_fallback_run(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The issue-40 office loop: a repetitive texture's many matches agreed on no pose,
+    that was taken as a jump, so the dense fallback never ran and tracking gave up (the code
+    of 6bf4a8b^ loses frames 1-3 here: "the frame's keypoints contradict the recent
+    keyframes (a jump?)"). Here
+    every frame's keypoints get 60 matches with random map points, on ICL-NUIM with planes
+    up to 3 m, where the plane pose leaves the translation free: each frame is still
+    tracked by the dense fallback, where the run with the true matches places it."""
+    from planeslam.tracking.keypoints import KeypointMap, Keypoints, PointMatches
+
+    folder = shared_sequence("iclnuim_of_kt0")
+    cfg = resolve_config(folder, overrides=["segmentation.max_depth_m=3.0"])
+    dataset = TumDataset(folder, cfg.camera, cfg.dataset)
+
+    def run() -> list[FrameResult]:
+        slam = SLAM(cfg, "merge")
+        results = [
+            slam.process(dataset[k].depth_m, dataset.timestamps[k], dataset[k].rgb)
+            for k in range(4)
+        ]
+        slam.finish()
+        return results
+
+    reference = run()
+    rng = np.random.default_rng(0)
+
+    def random_matches(
+        self: KeypointMap, keypoints: Keypoints, indices: list[int], *args: object
+    ) -> PointMatches:
+        n = 60  # a keypoint may match several points, as a repetitive texture's do
+        return PointMatches(
+            observed=rng.integers(0, len(keypoints), n),
+            points_world=rng.uniform(-2.0, 2.0, (n, 3)),
+            covariances_world=np.broadcast_to(1e-4 * np.eye(3), (n, 3, 3)).copy(),
+            keyframes=np.full(n, indices[-1] if indices else 0, np.int64),
+        )
+
+    monkeypatch.setattr(KeypointMap, "matches", random_matches)
+    results = run()
+    disagreeing = [r for r in results[1:] if "60 point matches agree on no pose" in r.reason]
+    assert len(disagreeing) == 3, [r.reason for r in results]
+    assert all("odometry" in r.path or "icp" in r.path for r in disagreeing)
+    for ours, theirs in zip(results, reference, strict=True):
+        assert np.linalg.norm(ours.T_world_cam[:3, 3] - theirs.T_world_cam[:3, 3]) < 0.01
