@@ -234,6 +234,7 @@ def test_the_first_frame_is_the_dense_fallbacks_previous_frame() -> None:
     assert np.linalg.norm(T_seg_cam[:3, 3] - results[1].T_world_cam[:3, 3]) < 0.01
 
 
+@pytest.mark.data
 def test_keypoints_that_agree_on_no_pose_still_let_the_dense_fallback_run(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
