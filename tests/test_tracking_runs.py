@@ -241,10 +241,10 @@ def test_keypoints_that_agree_on_no_pose_still_let_the_dense_fallback_run(
     """The issue-40 office loop: a repetitive texture's many matches agreed on no pose,
     that was taken as a jump, so the dense fallback never ran and tracking gave up (the code
     of 6bf4a8b^ loses frames 1-3 here: "the frame's keypoints contradict the recent
-    keyframes (a jump?)"). Here
-    every frame's keypoints get 60 matches with random map points, on ICL-NUIM with planes
-    up to 3 m, where the plane pose leaves the translation free: each frame is still
-    tracked by the dense fallback, where the run with the true matches places it."""
+    keyframes (a jump?)"). Here every frame's keypoints get 60 matches with random map
+    points, on ICL-NUIM with planes up to 3 m, where the plane pose leaves the translation
+    free: each frame is still tracked by the dense fallback, where the run with the true
+    matches places it."""
     from planeslam.tracking.keypoints import KeypointMap, Keypoints, PointMatches
 
     folder = shared_sequence("iclnuim_of_kt0")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
 from planeslam.app.arg_types import SEED, number, whole
@@ -110,7 +111,9 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_synth)
 
 
-def _furniture(kinds: tuple[str, ...]):
+def _furniture(kinds: tuple[str, ...]) -> Callable[[str], tuple[str, ...]]:
+    """A parser of 'KIND,...' into the furniture kinds among `kinds` ('' for none)."""
+
     def parse(text: str) -> tuple[str, ...]:
         chosen = tuple(k for k in text.split(",") if k)
         bad = [k for k in chosen if k not in kinds]

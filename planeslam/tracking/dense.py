@@ -59,6 +59,22 @@ COLOUR_MIN_CONTRAST = 8.0
 (sensor noise and shading differences stay below it)."""
 
 
+def colour_verdict(measured: tuple[float, float] | None) -> ColourCheck:
+    """What a (median grey difference, texture contrast) pair in grey levels says
+    (`DenseFallback.colour_difference`; None: UNKNOWN): the difference against
+    COLOUR_MATCH_SHARE of the contrast and COLOUR_MIN_CONTRAST."""
+    if measured is None:
+        return ColourCheck.UNKNOWN
+    difference, contrast = measured
+    if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
+        return ColourCheck.CONTRADICTS
+    if contrast < COLOUR_MIN_CONTRAST:
+        return ColourCheck.PLAIN
+    if difference <= COLOUR_MATCH_SHARE * contrast:
+        return ColourCheck.CONFIRMS
+    return ColourCheck.UNKNOWN
+
+
 @dataclass(frozen=True)
 class DensePose:
     """A pose the dense fallback registered."""
@@ -127,22 +143,26 @@ class DenseFallback:
         keypoints_agree: Callable[[np.ndarray], bool] = lambda T: False,
     ) -> DensePose | None:
         """RGB-D odometry, then ICP, against the previous frame from each of the (4, 4)
-        `starts`: per start the first result taken (`_acceptable`); of those, the one whose
-        colours differ least from the previous frame's (`colour_difference`; ties to the
-        earlier start), or None."""
+        `starts` (one equal to an earlier start is skipped): per start the first result
+        taken (`_acceptable`); of those, the one whose colours differ least from the
+        previous frame's (`colour_difference`; ties to the earlier start), or None."""
         methods: list[tuple[Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
             methods.append((Primitive.ICP, lambda T0: self._icp(cloud, T0)))
         taken: list[tuple[float, DensePose]] = []
-        for T_start in starts:
+        for k, T_start in enumerate(starts):
+            if any(np.array_equal(T_start, earlier) for earlier in starts[:k]):
+                continue
             for kind, method in methods:
                 T = method(T_start)
-                if T is not None and self._acceptable(
+                if T is None:
+                    continue
+                difference = self._acceptable(
                     kind, T, cloud, rgbd, reasons, slides, keypoints_agree
-                ):
-                    measured = self.colour_difference(cloud, rgbd, T)
-                    taken.append((np.inf if measured is None else measured[0], DensePose(T, kind)))
+                )
+                if difference is not None:
+                    taken.append((difference, DensePose(T, kind)))
                     break
         return min(taken, key=lambda pair: pair[0])[1] if taken else None
 
@@ -155,26 +175,27 @@ class DenseFallback:
         reasons: list[str],
         slides: Callable[[], bool],
         keypoints_agree: Callable[[np.ndarray], bool],
-    ) -> bool:
-        """Whether the dense pose T (4, 4) by `kind` overlaps the previous frame's depth and
-        its colours do not contradict it. When the frame `slides()` (its depth mostly on
-        parallel planes, which any slide along them still overlaps) and the colours cannot
-        tell, `keypoints_agree(T)` must hold. Why a result was refused is appended to
-        `reasons`."""
+    ) -> float | None:
+        """The colour difference of the dense pose T (4, 4) by `kind` (inf where it cannot
+        be measured) when T overlaps the previous frame's depth and its colours do not
+        contradict it, else None. When the frame `slides()` (its depth mostly on parallel
+        planes, which any slide along them still overlaps) and the colours cannot tell,
+        `keypoints_agree(T)` must hold. Why a result was refused is appended to `reasons`."""
         if not self.agrees(cloud, T):
             reasons.append(f"{kind.value} result does not overlap the previous frame")
-            return False
-        colours = self.colour_check(cloud, rgbd, T)
+            return None
+        measured = self.colour_difference(cloud, rgbd, T)
+        colours = colour_verdict(measured)
         if colours is ColourCheck.CONTRADICTS:
             reasons.append(f"{kind.value} result: the colours contradict the previous frame")
-            return False
+            return None
         if colours is ColourCheck.UNKNOWN and slides() and not keypoints_agree(T):
             reasons.append(
                 f"{kind.value} result unconfirmed: the frame's depth is parallel planes "
                 "and its keypoints do not agree"
             )
-            return False
-        return True
+            return None
+        return np.inf if measured is None else measured[0]
 
     def _points(self, cloud: np.ndarray) -> np.ndarray:
         """(P, 3) float64 valid camera-frame points of an (H, W, 3) organised cloud for ICP,
@@ -237,20 +258,9 @@ class DenseFallback:
         self, cloud: np.ndarray | None, rgbd: RgbdPair | None, T_world_cam: np.ndarray
     ) -> ColourCheck:
         """Whether this frame's colours, moved by T_world_cam (4, 4) into the previous frame,
-        match the colours there where the depths agree (`ColourCheck`): the median grey
-        difference (`colour_difference`) against COLOUR_MATCH_SHARE of the frame's texture
-        contrast (the median absolute deviation of its grey levels) and COLOUR_MIN_CONTRAST."""
-        measured = self.colour_difference(cloud, rgbd, T_world_cam)
-        if measured is None:
-            return ColourCheck.UNKNOWN
-        difference, contrast = measured
-        if difference > max(COLOUR_MATCH_SHARE * contrast, COLOUR_MIN_CONTRAST):
-            return ColourCheck.CONTRADICTS
-        if contrast < COLOUR_MIN_CONTRAST:
-            return ColourCheck.PLAIN
-        if difference <= COLOUR_MATCH_SHARE * contrast:
-            return ColourCheck.CONFIRMS
-        return ColourCheck.UNKNOWN
+        match the colours there where the depths agree (`colour_verdict` of
+        `colour_difference`)."""
+        return colour_verdict(self.colour_difference(cloud, rgbd, T_world_cam))
 
     def colour_difference(
         self, cloud: np.ndarray | None, rgbd: RgbdPair | None, T_world_cam: np.ndarray

@@ -300,17 +300,14 @@ class Tracker:
         # 3. The dense fallback, free directions at the last pose (else a slide nothing
         # observes keeps the velocity it made, and grows) and at the prediction (a wide step).
         if self.prediction_valid:
-            starts = [T_pred] if good is None else [good.T]
-            if good is not None and good.registration.status in PARTIAL:
-                free_at = [self.dense.previous_pose, T_pred]
-                starts = [self.planes.free_from(frame, view, good, T) for T in free_at]
+            free_at = [self.dense.previous_pose, T_pred]
+            starts = (
+                [T_pred]
+                if good is None
+                else [self.planes.free_from(frame, view, good, T) for T in free_at]
+            )
             dense = self.dense.register(
-                starts,
-                cloud,
-                rgbd,
-                reasons,
-                slides,
-                partial(self._keypoints_agree, keypoints),
+                starts, cloud, rgbd, reasons, slides, partial(self._keypoints_agree, keypoints)
             )
             if dense is not None:
                 return self._completed(
