@@ -25,7 +25,8 @@ from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import Primitive
-from planeslam.tracking.registration import refine_icp
+from planeslam.tracking.registration import RegistrationResult, refine_icp
+from planeslam.tracking.sweep import sweep_free_translation
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -165,6 +166,40 @@ class DenseFallback:
                     taken.append((difference, DensePose(T, kind)))
                     break
         return min(taken, key=lambda pair: pair[0])[1] if taken else None
+
+    def swept(
+        self,
+        T_center: np.ndarray,
+        registration: RegistrationResult,
+        cloud: np.ndarray | None,
+        rgbd: RgbdPair | None,
+    ) -> np.ndarray | None:
+        """T_center (4, 4) moved along the one translation direction `registration` left
+        free to where the frame best lands on the previous frame (`sweep_free_translation`),
+        or None: the rotation is not fixed, not one direction is free, or no cloud."""
+        free = registration.unobservable_translation_dirs
+        if (
+            len(registration.unobservable_rotation_axes)
+            or len(free) != 1
+            or cloud is None
+            or self.previous_cloud is None
+            or self.camera is None
+        ):
+            return None
+        assert self.previous_pose is not None, "set with the previous cloud"
+        greys: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+        if rgbd is not None and self.previous_rgbd is not None:
+            greys = (self._grey(rgbd[0]), self._grey(self.previous_rgbd[0]))
+        return sweep_free_translation(
+            T_center,
+            free[0],
+            cloud,
+            greys[0],
+            self.previous_pose,
+            self.previous_cloud[..., 2],
+            greys[1],
+            self.camera,
+        )
 
     def _acceptable(
         self,

@@ -306,6 +306,9 @@ class Tracker:
                 if good is None
                 else [self.planes.free_from(frame, view, good, T) for T in free_at]
             )
+            if good is not None:  # a robot step lies beyond the dense methods' reach
+                swept = self.dense.swept(starts[0], good.registration, cloud, rgbd)
+                starts = starts if swept is None else [swept, *starts]
             dense = self.dense.register(
                 starts, cloud, rgbd, reasons, slides, partial(self._keypoints_agree, keypoints)
             )

@@ -1,0 +1,143 @@
+"""A sweep along the directions a partial plane pose leaves free, before the dense fallback.
+
+When the frame's planes fix its rotation but leave one translation direction free (a floor
+and a wall, or two walls: the line along both), RGB-D odometry and ICP start where the last
+pose or the
+prediction puts the free part and converge only within a few centimetres of it: a robot
+step of 10-20 cm between frames lies outside that basin. The sweep moves the plane pose
+along the free direction over a grid and scores every candidate at once by how well the
+frame, moved by it, lands on the previous frame: depth residuals (furniture and edges
+that the free planes do not fix) and grey-level residuals (texture), each clipped, so a
+few outliers cannot dominate. The best candidate becomes one more start of the dense
+fallback, which still refines and accepts it by its own evidence.
+
+Planes that fix the rotation (two normals or more) leave at most one direction free;
+rotation fixed by corners or points with more left free is not swept.
+
+Frames: every pose is T_world_cam (4, 4); the direction in the world frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planeslam.core.camera import CameraConfig
+from planeslam.core.geometry import invert_pose
+
+SWEEP_RANGE_M = 0.3
+"""Half-width [m] of the sweep: a robot step and the last pose's error together."""
+SWEEP_STEP_M = 0.01
+"""Grid spacing [m] (61 candidates)."""
+SWEEP_STRIDE_PX = 16
+"""Every SWEEP_STRIDE_PX-th pixel of the frame in each direction is scored (about 1,200)."""
+DEPTH_NOISE_M = 0.01
+"""Depth residuals count beyond DEPTH_NOISE_M * (1 + depth [m]) only: sensor noise and the
+depth's quantisation, which repeats pixel for pixel and would otherwise favour the
+candidate that maps every pixel onto itself."""
+DEPTH_CLIP_M = 0.05
+"""Depth residuals beyond the noise are clipped at this [m]."""
+GREY_NOISE = 5.0
+"""Grey-level residuals count beyond this (sensor noise after the blur)."""
+GREY_CLIP = 30.0
+"""Grey-level residuals beyond the noise are clipped at this."""
+DISTINCT_RATIO = 0.7
+"""The best candidate is taken only when its cost is at most this share of the median
+cost over the sweep: a flat profile means the free directions are unobservable to depth
+and colour too (bare walls), and the sweep says nothing."""
+DISTINCT_MIN_COST = 0.02
+"""... and at least this much below the median (a bare wall's costs are all near 0)."""
+RIVAL_DISTANCE_M = 0.05
+"""Local minima of the cost farther than this [m] from the best are its rivals (other
+basins)."""
+RIVAL_MARGIN = 0.5
+"""The best rival must cost more than the best by this share of (median - best): a
+repetitive texture's period, or a symmetric layout, leaves two basins alike, and then the
+sweep says nothing."""
+MIN_SCORED_SHARE = 0.3
+"""A candidate that puts fewer than this share of the sampled points on the previous
+frame's valid depth is not scored."""
+
+
+def sweep_free_translation(
+    T_center: np.ndarray,
+    direction: np.ndarray,
+    cloud: np.ndarray,
+    grey: np.ndarray | None,
+    T_world_prev: np.ndarray,
+    depth_prev: np.ndarray,
+    grey_prev: np.ndarray | None,
+    camera: CameraConfig,
+) -> np.ndarray | None:
+    """T_center (4, 4) moved along `direction` (3,) (unit, world frame) to the grid
+    candidate with the lowest `sweep_costs`; of equal costs the one nearest T_center. None
+    when no candidate can be scored, or the best is not distinct (DISTINCT_RATIO,
+    DISTINCT_MIN_COST) or another basin nearly matches it (RIVAL_MARGIN)."""
+    scored = sweep_costs(
+        T_center, direction, cloud, grey, T_world_prev, depth_prev, grey_prev, camera
+    )
+    if scored is None:
+        return None
+    shifts, cost = scored
+    finite = cost[np.isfinite(cost)]
+    if not len(finite):
+        return None
+    best = int(np.lexsort((np.abs(shifts), cost))[0])
+    median = float(np.median(finite))
+    if cost[best] > min(DISTINCT_RATIO * median, median - DISTINCT_MIN_COST):
+        return None
+    padded = np.r_[np.inf, cost, np.inf]
+    minima = (cost <= padded[:-2]) & (cost <= padded[2:])
+    rivals = minima & (np.abs(shifts - shifts[best]) > RIVAL_DISTANCE_M)
+    if np.any(rivals) and np.min(cost[rivals]) - cost[best] < RIVAL_MARGIN * (median - cost[best]):
+        return None
+    T = T_center.copy()
+    T[:3, 3] += shifts[best] * np.asarray(direction, dtype=np.float64)
+    return T
+
+
+def sweep_costs(
+    T_center: np.ndarray,
+    direction: np.ndarray,
+    cloud: np.ndarray,
+    grey: np.ndarray | None,
+    T_world_prev: np.ndarray,
+    depth_prev: np.ndarray,
+    grey_prev: np.ndarray | None,
+    camera: CameraConfig,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The sweep's shifts (M,) [m] along `direction` (3,) from T_center (4, 4) and each
+    candidate's cost (M,): over every SWEEP_STRIDE_PX-th point of the frame's organised
+    cloud (H, W, 3, camera frame) moved into the previous frame (at T_world_prev, depth
+    (H, W) [m]), the mean depth residual beyond the noise (DEPTH_NOISE_M), clipped, /
+    DEPTH_CLIP_M, plus (with both greys, (H, W) float) the mean grey residual beyond
+    GREY_NOISE, clipped, / GREY_CLIP (inf: fewer than MIN_SCORED_SHARE scored). None with
+    fewer than 100 valid points."""
+    s = SWEEP_STRIDE_PX
+    xyz = cloud[::s, ::s].reshape(-1, 3)
+    keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
+    if np.count_nonzero(keep) < 100:
+        return None
+    T_prev_world = invert_pose(T_world_prev)
+    T_prev_cam = T_prev_world @ T_center
+    p0 = xyz[keep] @ T_prev_cam[:3, :3].T + T_prev_cam[:3, 3]  # (N, 3) previous camera
+    shifts = np.arange(-SWEEP_RANGE_M, SWEEP_RANGE_M + SWEEP_STEP_M / 2, SWEEP_STEP_M)
+    p = p0[None, :, :] + shifts[:, None, None] * (T_prev_world[:3, :3] @ direction)  # (M, N, 3)
+    z = p[..., 2]
+    front = z > 0.1
+    z_safe = np.where(front, z, 1.0)
+    u = np.rint(camera.fx * p[..., 0] / z_safe + camera.cx).astype(np.int64)
+    v = np.rint(camera.fy * p[..., 1] / z_safe + camera.cy).astype(np.int64)
+    inside = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    u, v = np.where(inside, u, 0), np.where(inside, v, 0)
+    z_prev = depth_prev[v, u]
+    scored = inside & (z_prev > 0) & np.isfinite(z_prev)
+    counts = np.count_nonzero(scored, axis=1)
+    depth_excess = np.abs(z_prev - z) - DEPTH_NOISE_M * (1.0 + z)
+    residual = np.clip(depth_excess, 0.0, DEPTH_CLIP_M) / DEPTH_CLIP_M
+    if grey is not None and grey_prev is not None:
+        g = grey[::s, ::s].reshape(-1)[keep]
+        grey_excess = np.abs(grey_prev[v, u] - g[None, :]) - GREY_NOISE
+        residual = residual + np.clip(grey_excess, 0.0, GREY_CLIP) / GREY_CLIP
+    cost = np.where(scored, residual, 0.0).sum(axis=1) / np.maximum(counts, 1)
+    cost[counts < MIN_SCORED_SHARE * len(p0)] = np.inf
+    return shifts, cost
