@@ -1,5 +1,6 @@
-"""The sweep along a partial plane pose's free directions: a robot step along a wall found
-from the colours, and no answer where the wall is bare (nothing observes the slide)."""
+"""The sweep along a partial plane pose's free direction: a robot step along a wall found
+from the colours, never a checkerboard's other period, and no answer where the wall is
+bare (nothing observes the slide)."""
 
 from __future__ import annotations
 

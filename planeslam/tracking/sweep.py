@@ -1,15 +1,15 @@
-"""A sweep along the directions a partial plane pose leaves free, before the dense fallback.
+"""A sweep along the direction a partial plane pose leaves free, before the dense fallback.
 
 When the frame's planes fix its rotation but leave one translation direction free (a floor
-and a wall, or two walls: the line along both), RGB-D odometry and ICP start where the last
-pose or the
-prediction puts the free part and converge only within a few centimetres of it: a robot
-step of 10-20 cm between frames lies outside that basin. The sweep moves the plane pose
-along the free direction over a grid and scores every candidate at once by how well the
-frame, moved by it, lands on the previous frame: depth residuals (furniture and edges
-that the free planes do not fix) and grey-level residuals (texture), each clipped, so a
-few outliers cannot dominate. The best candidate becomes one more start of the dense
-fallback, which still refines and accepts it by its own evidence.
+and a wall, or two walls: the line along both), RGB-D odometry and ICP start where the
+last pose or the prediction puts the free part and converge only within a few
+centimetres of it: a robot step of 10-20 cm between frames lies outside that basin. The
+sweep moves the plane pose along the free direction over a grid and scores every
+candidate at once by how well the frame, moved by it, lands on the previous frame: depth
+residuals (furniture and edges that the planes do not fix) and grey-level residuals
+(texture), each counted beyond the sensor's noise and clipped, so a few outliers cannot
+dominate. The best candidate becomes one more start of the dense fallback, which still
+refines and accepts it by its own evidence.
 
 Planes that fix the rotation (two normals or more) leave at most one direction free;
 rotation fixed by corners or points with more left free is not swept.
@@ -29,7 +29,7 @@ SWEEP_RANGE_M = 0.3
 SWEEP_STEP_M = 0.01
 """Grid spacing [m] (61 candidates)."""
 SWEEP_STRIDE_PX = 16
-"""Every SWEEP_STRIDE_PX-th pixel of the frame in each direction is scored (about 1,200)."""
+"""Every SWEEP_STRIDE_PX-th pixel in each direction is scored (up to 1,200 of 640 x 480)."""
 DEPTH_NOISE_M = 0.01
 """Depth residuals count beyond DEPTH_NOISE_M * (1 + depth [m]) only: sensor noise and the
 depth's quantisation, which repeats pixel for pixel and would otherwise favour the
@@ -42,7 +42,7 @@ GREY_CLIP = 30.0
 """Grey-level residuals beyond the noise are clipped at this."""
 DISTINCT_RATIO = 0.7
 """The best candidate is taken only when its cost is at most this share of the median
-cost over the sweep: a flat profile means the free directions are unobservable to depth
+cost over the sweep: a flat profile means the free direction is unobservable to depth
 and colour too (bare walls), and the sweep says nothing."""
 DISTINCT_MIN_COST = 0.02
 """... and at least this much below the median (a bare wall's costs are all near 0)."""
