@@ -13,7 +13,7 @@ from planeslam.sim.render import render_frame
 from planeslam.sim.scene_model import Box, Texture, make_scene
 from planeslam.sim.scenes import look_at
 from planeslam.tracking.dense import smooth_grey
-from planeslam.tracking.sweep import sweep_free_translation
+from planeslam.tracking.sweep import LastFrame, sweep_free_translation
 
 pytestmark = pytest.mark.unit
 
@@ -48,15 +48,9 @@ def _frames(pattern: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]
 def _sweep(previous: dict[str, np.ndarray], current: dict[str, np.ndarray]) -> np.ndarray | None:
     T_center = current["T"].copy()
     T_center[:3, 3] -= STEP_M * ALONG_WALL  # the slide at the last pose: the step missed
+    last = LastFrame(previous["T"], previous["depth"], previous["grey"])
     return sweep_free_translation(
-        T_center,
-        ALONG_WALL,
-        current["cloud"],
-        current["grey"],
-        previous["T"],
-        previous["depth"],
-        previous["grey"],
-        CAMERA,
+        T_center, ALONG_WALL, current["cloud"], current["grey"], last, CAMERA
     )
 
 

@@ -76,6 +76,21 @@ class CameraConfig:
         return replace(self, **camera_override_values(text))  # type: ignore[arg-type]
 
 
+def nearest_pixels(
+    camera: CameraConfig, points: np.ndarray, min_depth_m: float = 0.1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, v, inside) of camera-frame points (..., 3) [m]: the nearest pixel's column and
+    row (int64, 0 where not inside, so they index an image safely) and whether the point is
+    at least `min_depth_m` in front of the camera and projects into the image."""
+    z = points[..., 2]
+    front = z > min_depth_m
+    z_safe = np.where(front, z, 1.0)
+    u = np.rint(camera.fx * points[..., 0] / z_safe + camera.cx).astype(np.int64)
+    v = np.rint(camera.fy * points[..., 1] / z_safe + camera.cy).astype(np.int64)
+    inside = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+    return np.where(inside, u, 0), np.where(inside, v, 0), inside
+
+
 def camera_override_values(text: str) -> dict[str, float]:
     """'fx,fy,cx,cy[,depth_scale]' -> {'fx': .., 'fy': .., 'cx': .., 'cy': ..[, 'depth_scale']}."""
     try:

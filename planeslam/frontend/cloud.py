@@ -9,6 +9,8 @@ is NaN-free and `points[..., 2] > 0` is exactly the validity mask
 
 from __future__ import annotations
 
+from typing import overload
+
 import numpy as np
 
 from planeslam.core.camera import PixelRays
@@ -67,3 +69,25 @@ def back_project(
     limit = np.float32(min(float(max_depth_m), float(np.finfo(np.float32).max)))
     rays = rays32 if rays32.flags.c_contiguous else np.ascontiguousarray(rays32)
     return back_project_kernel(depth, rays, limit)
+
+
+@overload
+def sampled_points(cloud: np.ndarray, stride: int) -> tuple[np.ndarray, None]: ...
+@overload
+def sampled_points(
+    cloud: np.ndarray, stride: int, values: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]: ...
+@overload
+def sampled_points(
+    cloud: np.ndarray, stride: int, values: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray | None]: ...
+def sampled_points(
+    cloud: np.ndarray, stride: int, values: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The valid points (z > 0, finite) among every `stride`-th pixel in each direction of
+    an organised cloud (H, W, 3) -> (N, 3), and the same pixels of `values` (H, W) -> (N,)
+    (None without)."""
+    xyz = cloud[::stride, ::stride].reshape(-1, 3)
+    keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
+    picked = None if values is None else values[::stride, ::stride].reshape(-1)[keep]
+    return xyz[keep], picked

@@ -20,13 +20,14 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from planeslam.core.camera import CameraConfig
+from planeslam.core.camera import CameraConfig, nearest_pixels
 from planeslam.core.errors import GeometryError
 from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_points
+from planeslam.frontend.cloud import sampled_points
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import Primitive
 from planeslam.tracking.registration import RegistrationResult, refine_icp
-from planeslam.tracking.sweep import sweep_free_translation
+from planeslam.tracking.sweep import LastFrame, sweep_free_translation
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -187,19 +188,11 @@ class DenseFallback:
         ):
             return None
         assert self.previous_pose is not None, "set with the previous cloud"
-        greys: tuple[np.ndarray | None, np.ndarray | None] = (None, None)
+        grey = grey_prev = None
         if rgbd is not None and self.previous_rgbd is not None:
-            greys = (self._grey(rgbd[0]), self._grey(self.previous_rgbd[0]))
-        return sweep_free_translation(
-            T_center,
-            free[0],
-            cloud,
-            greys[0],
-            self.previous_pose,
-            self.previous_cloud[..., 2],
-            greys[1],
-            self.camera,
-        )
+            grey, grey_prev = self._grey(rgbd[0]), self._grey(self.previous_rgbd[0])
+        last = LastFrame(self.previous_pose, self.previous_cloud[..., 2], grey_prev)
+        return sweep_free_translation(T_center, free[0], cloud, grey, last, self.camera)
 
     def _acceptable(
         self,
@@ -278,10 +271,7 @@ class DenseFallback:
         cam, cfg = self.camera, self.config
         T = invert_pose(self.previous_pose) @ T_world_cam
         p = transform_points(T, self._points(cloud))
-        p = p[p[:, 2] > 0.1]
-        u = np.rint(cam.fx * p[:, 0] / p[:, 2] + cam.cx).astype(np.int64)
-        v = np.rint(cam.fy * p[:, 1] / p[:, 2] + cam.cy).astype(np.int64)
-        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        u, v, inside = nearest_pixels(cam, p)
         z_prev = self.previous_cloud[v[inside], u[inside], 2]
         seen = z_prev > 0
         if np.count_nonzero(seen) < 100:
@@ -306,17 +296,9 @@ class DenseFallback:
         if cloud is None or rgbd is None or self.previous_rgbd is None or self.camera is None:
             return None
         assert self.previous_pose is not None, "set with the previous frame"
-        cam, s = self.camera, self.config.icp_stride
-        xyz = cloud[::s, ::s].reshape(-1, 3)
-        grey = self._grey(rgbd[0])[::s, ::s].reshape(-1)
-        keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
-        p = transform_points(invert_pose(self.previous_pose) @ T_world_cam, xyz[keep])
-        grey = grey[keep]
-        front = p[:, 2] > 0.1
-        p, grey = p[front], grey[front]
-        u = np.rint(cam.fx * p[:, 0] / p[:, 2] + cam.cx).astype(np.int64)
-        v = np.rint(cam.fy * p[:, 1] / p[:, 2] + cam.cy).astype(np.int64)
-        inside = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        xyz, grey = sampled_points(cloud, self.config.icp_stride, self._grey(rgbd[0]))
+        p = transform_points(invert_pose(self.previous_pose) @ T_world_cam, xyz)
+        u, v, inside = nearest_pixels(self.camera, p)
         rgb_prev, depth_prev = self.previous_rgbd
         z_prev = depth_prev[v[inside], u[inside]]
         shared = (z_prev > 0) & (np.abs(z_prev - p[inside, 2]) <= self.config.icp_max_distance_m)

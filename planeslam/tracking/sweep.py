@@ -19,10 +19,13 @@ Frames: every pose is T_world_cam (4, 4); the direction in the world frame.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
-from planeslam.core.camera import CameraConfig
+from planeslam.core.camera import CameraConfig, nearest_pixels
 from planeslam.core.geometry import invert_pose
+from planeslam.frontend.cloud import sampled_points
 
 SWEEP_RANGE_M = 0.3
 """Half-width [m] of the sweep: a robot step and the last pose's error together."""
@@ -58,26 +61,47 @@ MIN_SCORED_SHARE = 0.3
 frame's valid depth is not scored."""
 
 
+@dataclass(frozen=True)
+class LastFrame:
+    """The previous tracked frame, which the sweep lands the frame on."""
+
+    T_world_cam: np.ndarray
+    """(4, 4) its pose."""
+    depth: np.ndarray
+    """(H, W) its depth [m] (0: invalid)."""
+    grey: np.ndarray | None
+    """(H, W) float its blurred grey levels, or None."""
+
+
 def sweep_free_translation(
     T_center: np.ndarray,
     direction: np.ndarray,
     cloud: np.ndarray,
     grey: np.ndarray | None,
-    T_world_prev: np.ndarray,
-    depth_prev: np.ndarray,
-    grey_prev: np.ndarray | None,
+    last: LastFrame,
     camera: CameraConfig,
 ) -> np.ndarray | None:
-    """T_center (4, 4) moved along `direction` (3,) (unit, world frame) to the grid
-    candidate with the lowest `sweep_costs`; of equal costs the one nearest T_center. None
-    when no candidate can be scored, or the best is not distinct (DISTINCT_RATIO,
-    DISTINCT_MIN_COST) or another basin nearly matches it (RIVAL_MARGIN)."""
-    scored = sweep_costs(
-        T_center, direction, cloud, grey, T_world_prev, depth_prev, grey_prev, camera
-    )
-    if scored is None:
+    """T_center (4, 4) moved along `direction` (3,) (unit, world frame) to the grid shift
+    with the lowest cost (`_shift_costs` of the frame's organised cloud (H, W, 3, camera
+    frame) and grey levels ((H, W) float or None) against `last`), or None: fewer than 100
+    valid points, or no distinct, unrivalled best (`_distinct_best`)."""
+    xyz, values = sampled_points(cloud, SWEEP_STRIDE_PX, grey)
+    if len(xyz) < 100:
         return None
-    shifts, cost = scored
+    shifts = np.arange(-SWEEP_RANGE_M, SWEEP_RANGE_M + SWEEP_STEP_M / 2, SWEEP_STEP_M)
+    moves = shifts[:, None] * direction  # (M, 3) world frame
+    best = _distinct_best(shifts, _shift_costs(T_center, moves, xyz, values, last, camera))
+    if best is None:
+        return None
+    T = T_center.copy()
+    T[:3, 3] += moves[best]
+    return T
+
+
+def _distinct_best(shifts: np.ndarray, cost: np.ndarray) -> int | None:
+    """Index of the lowest of `cost` (M,) over `shifts` (M,) [m] (of equal costs the
+    smallest shift), or None: nothing scored, the best not distinct (DISTINCT_RATIO,
+    DISTINCT_MIN_COST), or another basin nearly as good (RIVAL_MARGIN)."""
     finite = cost[np.isfinite(cost)]
     if not len(finite):
         return None
@@ -90,54 +114,35 @@ def sweep_free_translation(
     rivals = minima & (np.abs(shifts - shifts[best]) > RIVAL_DISTANCE_M)
     if np.any(rivals) and np.min(cost[rivals]) - cost[best] < RIVAL_MARGIN * (median - cost[best]):
         return None
-    T = T_center.copy()
-    T[:3, 3] += shifts[best] * np.asarray(direction, dtype=np.float64)
-    return T
+    return best
 
 
-def sweep_costs(
+def _shift_costs(
     T_center: np.ndarray,
-    direction: np.ndarray,
-    cloud: np.ndarray,
+    moves: np.ndarray,
+    xyz: np.ndarray,
     grey: np.ndarray | None,
-    T_world_prev: np.ndarray,
-    depth_prev: np.ndarray,
-    grey_prev: np.ndarray | None,
+    last: LastFrame,
     camera: CameraConfig,
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """The sweep's shifts (M,) [m] along `direction` (3,) from T_center (4, 4) and each
-    candidate's cost (M,): over every SWEEP_STRIDE_PX-th point of the frame's organised
-    cloud (H, W, 3, camera frame) moved into the previous frame (at T_world_prev, depth
-    (H, W) [m]), the mean depth residual beyond the noise (DEPTH_NOISE_M), clipped, /
-    DEPTH_CLIP_M, plus (with both greys, (H, W) float) the mean grey residual beyond
-    GREY_NOISE, clipped, / GREY_CLIP (inf: fewer than MIN_SCORED_SHARE scored). None with
-    fewer than 100 valid points."""
-    s = SWEEP_STRIDE_PX
-    xyz = cloud[::s, ::s].reshape(-1, 3)
-    keep = (xyz[:, 2] > 0) & np.all(np.isfinite(xyz), axis=1)
-    if np.count_nonzero(keep) < 100:
-        return None
-    T_prev_world = invert_pose(T_world_prev)
+) -> np.ndarray:
+    """(M,) cost of T_center (4, 4) moved by each of `moves` (M, 3) [m, world frame]: over
+    the frame's points `xyz` (N, 3, camera frame; their grey levels (N,) or None) moved
+    into `last`, the mean depth residual beyond the noise (DEPTH_NOISE_M), clipped, /
+    DEPTH_CLIP_M, plus (with both greys) the mean grey residual beyond GREY_NOISE, clipped,
+    / GREY_CLIP; inf where fewer than MIN_SCORED_SHARE of the points were scored."""
+    T_prev_world = invert_pose(last.T_world_cam)
     T_prev_cam = T_prev_world @ T_center
-    p0 = xyz[keep] @ T_prev_cam[:3, :3].T + T_prev_cam[:3, 3]  # (N, 3) previous camera
-    shifts = np.arange(-SWEEP_RANGE_M, SWEEP_RANGE_M + SWEEP_STEP_M / 2, SWEEP_STEP_M)
-    p = p0[None, :, :] + shifts[:, None, None] * (T_prev_world[:3, :3] @ direction)  # (M, N, 3)
-    z = p[..., 2]
-    front = z > 0.1
-    z_safe = np.where(front, z, 1.0)
-    u = np.rint(camera.fx * p[..., 0] / z_safe + camera.cx).astype(np.int64)
-    v = np.rint(camera.fy * p[..., 1] / z_safe + camera.cy).astype(np.int64)
-    inside = front & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-    u, v = np.where(inside, u, 0), np.where(inside, v, 0)
-    z_prev = depth_prev[v, u]
+    p0 = xyz @ T_prev_cam[:3, :3].T + T_prev_cam[:3, 3]  # (N, 3) previous camera
+    p = p0[None, :, :] + (moves @ T_prev_world[:3, :3].T)[:, None, :]  # (M, N, 3)
+    u, v, inside = nearest_pixels(camera, p)
+    z, z_prev = p[..., 2], last.depth[v, u]
     scored = inside & (z_prev > 0) & np.isfinite(z_prev)
     counts = np.count_nonzero(scored, axis=1)
     depth_excess = np.abs(z_prev - z) - DEPTH_NOISE_M * (1.0 + z)
     residual = np.clip(depth_excess, 0.0, DEPTH_CLIP_M) / DEPTH_CLIP_M
-    if grey is not None and grey_prev is not None:
-        g = grey[::s, ::s].reshape(-1)[keep]
-        grey_excess = np.abs(grey_prev[v, u] - g[None, :]) - GREY_NOISE
+    if grey is not None and last.grey is not None:
+        grey_excess = np.abs(last.grey[v, u] - grey[None, :]) - GREY_NOISE
         residual = residual + np.clip(grey_excess, 0.0, GREY_CLIP) / GREY_CLIP
     cost = np.where(scored, residual, 0.0).sum(axis=1) / np.maximum(counts, 1)
-    cost[counts < MIN_SCORED_SHARE * len(p0)] = np.inf
-    return shifts, cost
+    cost[counts < MIN_SCORED_SHARE * len(xyz)] = np.inf
+    return cost
