@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import base64
+import csv
 import dataclasses
 import html
+import io
 import json
 import logging
 from collections import Counter
@@ -42,6 +44,7 @@ EVAL_JSON = "eval.json"
 METRICS_JSON = "metrics.json"
 TRAJECTORY_PNG = "trajectory.png"
 ATE_PNG = "ate_over_time.png"
+FRAME_ERRORS_CSV = "frame_errors.csv"
 REPORT_HTML = "report.html"
 
 FRAMES_JSONL = "frames.jsonl"
@@ -102,12 +105,14 @@ def write_evaluation(
     evaluation: TrajectoryEvaluation,
     out_dir: str | Path,
     glitch_timestamps: np.ndarray | None = None,
+    records: Sequence[Mapping[str, Any]] = (),
 ) -> dict[str, Path]:
-    """Write eval.json, trajectory.png and ate_over_time.png (with the poses at
+    """Write eval.json, frame_errors.csv (`write_frame_errors`, with the run's `records`
+    from frames.jsonl), trajectory.png and ate_over_time.png (with the poses at
     `glitch_timestamps` (G,) [s] marked, `glitches.find_pose_glitches`) into `out_dir`
     (created).
 
-    Returns {"eval": ..., "trajectory_plot": ..., "ate_plot": ...} paths.
+    Returns {"eval": ..., "frame_errors": ..., "trajectory_plot": ..., "ate_plot": ...}.
     """
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -115,11 +120,49 @@ def write_evaluation(
     eval_path = write_text_atomic(out / EVAL_JSON, text)
     paths = {
         "eval": eval_path,
+        "frame_errors": write_frame_errors(evaluation, out / FRAME_ERRORS_CSV, records),
         "trajectory_plot": plot_trajectories(evaluation, out / TRAJECTORY_PNG),
         "ate_plot": plot_ate_over_time(evaluation, out / ATE_PNG, glitch_timestamps),
     }
     log.info("wrote %s", ", ".join(str(p) for p in paths.values()))
     return paths
+
+
+def write_frame_errors(
+    evaluation: TrajectoryEvaluation,
+    path: str | Path,
+    records: Sequence[Mapping[str, Any]] = (),
+) -> Path:
+    """frame_errors.csv: one row per evaluated pose, in time order: the estimate's
+    timestamp [s], the aligned pose's translation [m] and rotation [deg] errors, the errors
+    of the motion from the previous evaluated pose (empty on the first row), and, where a
+    frames.jsonl record of the run has its timestamp (to the microsecond), the frame index,
+    tracking path and reason. Written atomically; returns `path`."""
+    by_stamp = {
+        round(float(r["timestamp"]), 6): r
+        for r in records
+        if isinstance(r.get("timestamp"), (int, float))
+    }
+    steps = zip(evaluation.step_errors_m, evaluation.step_errors_deg, strict=True)
+    step_cells = [("", ""), *((f"{m:.6f}", f"{deg:.4f}") for m, deg in steps)]
+    table = io.StringIO()
+    writer = csv.writer(table, lineterminator="\n")
+    writer.writerow(
+        ["timestamp", "error_m", "error_deg", "step_error_m", "step_error_deg"]
+        + ["frame", "path", "reason"]
+    )
+    for k, t in enumerate(evaluation.timestamps):
+        record = by_stamp.get(round(float(t), 6), {})
+        writer.writerow(
+            [
+                f"{t:.6f}",
+                f"{evaluation.ate_errors_m[k]:.6f}",
+                f"{evaluation.ate_rotation_errors_deg[k]:.4f}",
+                *step_cells[k],
+                *(record.get(key, "") for key in ("index", "path", "reason")),
+            ]
+        )
+    return write_text_atomic(Path(path), table.getvalue())
 
 
 def format_figure(key: str, value: Any) -> tuple[str, str]:
@@ -534,6 +577,14 @@ def evaluate_to_folder(
         missing = truth if not truth.is_file() else objects
         raise EvaluationError(f"{missing}: not found (object sizes need truth.json and a map)")
     glitches = find_pose_glitches(read_tum(est_path))
-    paths = write_evaluation(evaluation, out, glitches.timestamps)
+    frames = est_path.parent / FRAMES_JSONL
+    records: list[dict[str, Any]] = []
+    if frames.is_file():
+        try:
+            records = read_frame_records(frames)
+        except EvaluationError as exc:  # the figures do not need it
+            warnings.append(f"frame_errors.csv without paths: {exc}")
+            log.warning("%s", warnings[-1])
+    paths = write_evaluation(evaluation, out, glitches.timestamps, records)
     paths["report"] = write_report(out, groundtruth=gt_path)
     return EvaluationRun(evaluation=evaluation, paths=paths, warnings=tuple(warnings))

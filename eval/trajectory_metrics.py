@@ -69,6 +69,13 @@ class TrajectoryEvaluation:
     """(P, 4, 4) associated estimated poses after alignment, in the ground-truth world frame."""
     ate_errors_m: np.ndarray = field(repr=False)
     """(P,) translation error of each pair after alignment [m]."""
+    ate_rotation_errors_deg: np.ndarray = field(repr=False)
+    """(P,) rotation angle error of each pair after alignment [deg]."""
+    step_errors_m: np.ndarray = field(repr=False)
+    """(P - 1,) translation error [m] of each motion between consecutive pairs (evo RPE
+    over one frame): a wrong step shows where it happened, not in every later pose."""
+    step_errors_deg: np.ndarray = field(repr=False)
+    """(P - 1,) rotation angle error of each motion between consecutive pairs [deg]."""
     T_gt_est: np.ndarray = field(repr=False)
     """(4, 4) SE(3) alignment applied to the estimate (estimate world -> ground-truth world)."""
     rpe_delta_frames: int = 0
@@ -217,8 +224,14 @@ def evaluate_trajectory(
             "associated positions are degenerate (all equal or on one line?)"
         ) from None
 
-    ape = metrics.APE(metrics.PoseRelation.translation_part)
-    ape.process_data((gt_sync, est_aligned))
+    pair = (gt_sync, est_aligned)
+    translation_part, angle_deg = (
+        metrics.PoseRelation.translation_part,
+        metrics.PoseRelation.rotation_angle_deg,
+    )
+    ape, ape_rotation = metrics.APE(translation_part), metrics.APE(angle_deg)
+    ape.process_data(pair)
+    ape_rotation.process_data(pair)
     stats = ape.get_all_statistics()
 
     delta_frames = rpe_delta_frames(est_aligned.timestamps, rpe_delta_s)
@@ -226,12 +239,9 @@ def evaluate_trajectory(
     rpe_rot: float | None = None
     delta_s = 0.0
     if delta_frames:
-        rpe_trans = _rpe_rmse(
-            gt_sync, est_aligned, metrics.PoseRelation.translation_part, delta_frames
-        )
-        rpe_rot = _rpe_rmse(
-            gt_sync, est_aligned, metrics.PoseRelation.rotation_angle_deg, delta_frames
-        )
+        rmse = metrics.StatisticsType.rmse
+        rpe_trans = float(_rpe(pair, translation_part, delta_frames).get_statistic(rmse))
+        rpe_rot = float(_rpe(pair, angle_deg, delta_frames).get_statistic(rmse))
         delta_s = delta_frames * float(np.median(np.diff(est_aligned.timestamps)))
     else:
         span = float(est_aligned.timestamps[-1] - est_aligned.timestamps[0])
@@ -254,6 +264,9 @@ def evaluate_trajectory(
         T_world_gt=np.asarray(gt_sync.poses_se3),
         T_world_est_aligned=np.asarray(est_aligned.poses_se3),
         ate_errors_m=np.asarray(ape.error, dtype=np.float64),
+        ate_rotation_errors_deg=np.asarray(ape_rotation.error, dtype=np.float64),
+        step_errors_m=np.asarray(_rpe(pair, translation_part, 1).error, dtype=np.float64),
+        step_errors_deg=np.asarray(_rpe(pair, angle_deg, 1).error, dtype=np.float64),
         T_gt_est=lie_algebra.se3(rotation, translation),
         rpe_delta_frames=delta_frames,
         rpe_delta_s=delta_s,
@@ -261,16 +274,15 @@ def evaluate_trajectory(
     )
 
 
-def _rpe_rmse(
-    gt: PoseTrajectory3D,
-    est: PoseTrajectory3D,
+def _rpe(
+    pair: tuple[PoseTrajectory3D, PoseTrajectory3D],
     relation: metrics.PoseRelation,
     delta_frames: int,
-) -> float:
-    """evo RPE RMSE over all pose pairs `delta_frames` apart."""
+) -> metrics.RPE:
+    """evo RPE of (ground truth, estimate) over all pose pairs `delta_frames` apart."""
     rpe = metrics.RPE(relation, delta=delta_frames, delta_unit=metrics.Unit.frames, all_pairs=True)
-    rpe.process_data((gt, est))
-    return float(rpe.get_statistic(metrics.StatisticsType.rmse))
+    rpe.process_data(pair)
+    return rpe
 
 
 def format_table(evaluation: TrajectoryEvaluation) -> str:

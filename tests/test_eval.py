@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import csv
 import json
 import os
 import subprocess
@@ -252,6 +253,33 @@ def test_write_evaluation_and_report(tum_pair: tuple[Path, Path], tmp_path: Path
     assert f"{ev.ate_rmse_m:.4f}" in page
     assert "<th>frames per second</th><td>5.0</td><td>Hz</td>" in page
     assert "<th>seg</th><td>5.0</td><td>ms</td>" in page
+
+
+def test_frame_errors_show_the_one_wrong_step_beside_its_path(tmp_path: Path) -> None:
+    """An exact trajectory with one 10 cm step error at row 60: every later pose is off
+    after alignment, but only row 60's step error is, and the frames.jsonl beside the
+    estimate names its frame and path."""
+    gt = circle_trajectory(100)
+    T = gt.T_world_cam.copy()
+    T[60:, 0, 3] += 0.1  # one wrong step: the frames after it follow it
+    write_tum(tmp_path / "groundtruth.txt", gt)
+    run = tmp_path / "run"
+    run.mkdir()
+    write_tum(run / "trajectory.txt", Trajectory(gt.timestamps, T))
+    records = [
+        {"index": k, "timestamp": float(t), "path": "icp" if k == 60 else "planes", "reason": ""}
+        for k, t in enumerate(gt.timestamps)
+    ]
+    (run / "frames.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    paths = evaluate_to_folder(tmp_path / "groundtruth.txt", run / "trajectory.txt").paths
+    with paths["frame_errors"].open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 100 and rows[0]["step_error_m"] == ""
+    steps = np.array([float(r["step_error_m"]) for r in rows[1:]])
+    assert np.argmax(steps) + 1 == 60 and steps[59] == pytest.approx(0.1, abs=1e-6)
+    assert np.max(np.delete(steps, 59)) < 1e-6
+    assert rows[60]["frame"] == "60" and rows[60]["path"] == "icp"
+    assert float(rows[99]["error_m"]) > 0.01  # the aligned poses all carry it
 
 
 def test_report_needs_something_to_show(tmp_path: Path) -> None:

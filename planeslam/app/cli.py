@@ -73,7 +73,9 @@ def _add_eval(sub: argparse._SubParsersAction) -> None:
         help="ATE and RPE of a TUM trajectory against ground truth (via evo)",
         description="Absolute trajectory error (translation RMSE, mean, median, max after SE(3) "
         "alignment without scale) and relative pose error per second, computed with evo. "
-        "Writes eval.json, trajectory.png, ate_over_time.png and report.html. Object size "
+        "Writes eval.json, frame_errors.csv (per pose: its error and its step's, with the "
+        "tracking path from a frames.jsonl beside ESTIMATE), trajectory.png, "
+        "ate_over_time.png and report.html. Object size "
         "errors are added when truth.json sits next to GROUNDTRUTH and map.json next to "
         "ESTIMATE (or --truth / --map are given).",
     )

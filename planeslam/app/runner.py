@@ -12,7 +12,7 @@ Output folder:
 - map_planes.ply   its plane polygons as a mesh coloured by object; map_points.ply its
                    sparse cloud;
 - metrics.json     speed, memory (map against point cloud, with the breakdown), lost frames;
-- eval.json, trajectory.png, ate_over_time.png  when groundtruth.txt exists;
+- eval.json, frame_errors.csv, trajectory.png, ate_over_time.png  when groundtruth.txt exists;
 - report.html      one self-contained page (figures embedded), map.png its top-down map.
 The run holds the folder's lock while it writes (a second run there is refused) and first
 moves a previous run's files into previous-<time>/ (`run_folder.claim_run_folder`); nothing
