@@ -174,6 +174,20 @@ class AnchoredPoses:
                 self._T_anchor_cam[k] = T_anchor_join @ T_join_seg @ T
                 self._tracked[k] = True
 
+    def forget_keyframes(self) -> dict[int, np.ndarray]:
+        """The map was dropped (a segment replaced it): no keyframe is left, and no frame
+        so far has a pose until it joins the next map. Returns {frame: T_world_cam (4, 4)}
+        of the frames that had one, in the dropped map's world frame."""
+        poses = {k: self.final_pose(k) for k, tracked in enumerate(self._tracked) if tracked}
+        self.last_keyframe = None
+        self._tracked = [False] * len(self._tracked)
+        self._anchor = [-1] * len(self._anchor)
+        self._online.clear()
+        self._online_array = None
+        self._final.clear()
+        self._terms.clear()
+        return poses
+
     # ---------------------------------------------------------------------- final poses
 
     def final_pose(self, index: int) -> np.ndarray:

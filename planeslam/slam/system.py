@@ -25,7 +25,11 @@ back).
 sources); `run_frames` drives it over an `RgbdDataset` (folder or bag). Poses are
 T_world_cam (4, 4). The first frame's pose fixes the world frame (`run.start_pose`): the
 identity (the first camera's frame), or its ground-truth pose when one is known
-(`T_world_first`; `slam_for_dataset` reads it from the dataset).
+(`T_world_first`; `slam_for_dataset` reads it from the dataset). When a segment of
+frames tracked since a loss (`planeslam.tracking.segments`) has tracked more frames than
+the map holds and never joined it, the segment replaces the map, its first frame placed
+where the map predicted it; the dropped map's frames have no pose until a keyframe of the
+new map relocalises in the dropped one (twice at one place), and then rejoin.
 A `SLAM` is a context manager: leaving the block (or dropping the object) stops its
 backend process.
 """
@@ -65,10 +69,11 @@ from planeslam.io.trajectory import Trajectory
 from planeslam.mapping.sparse_cloud import FusedCloudSize
 from planeslam.mapping.world_map import Map
 from planeslam.slam.anchors import AnchoredPoses, FinalMap
+from planeslam.slam.map_view import map_view
 from planeslam.slam.records import FrameResult
 from planeslam.tracking.glitches import PoseGlitches
 from planeslam.tracking.odometry import RgbdOdometry
-from planeslam.tracking.segments import Segment, Segments
+from planeslam.tracking.segments import DroppedMap, Segment, Segments
 from planeslam.tracking.tracker import MapView, Tracker, TrackResult
 
 logger = logging.getLogger(__name__)
@@ -126,35 +131,15 @@ class SLAM:
             raise ConfigError("localize needs a map to localise in (map=Map.load(path))")
         self.config = config
         self.front_end = FrontEnd(config, seed=config.run.seed if seed is None else seed)
-        odometry = RgbdOdometry(config.camera) if config.tracking.rgbd_odometry else None
-        self.tracker = Tracker(
-            config.tracking,
-            odometry,
-            config.camera,
-            config.sensor,
-            config.run.seed,
-            every_keyframe_keypoints=every_keyframe_keypoints,
-        )
-        self.backend: Backend = create_backend(backend or config.run.backend, config.backend)
+        self._backend_kind = backend or config.run.backend
+        self._every_keyframe_keypoints = every_keyframe_keypoints
         self._in_given_map = map is not None
-        self.map = (
-            map
-            if map is not None
-            else Map(map_config_for(config.map, self.backend), config.objects)
-        )
-        self.map.sensor = config.sensor  # also a given map's: it merges this run's frames
         self.localize = localize
         """Track in `map` without changing it."""
-        if self._in_given_map:
-            self.tracker.expect_jump()
-        self._stop_backend = weakref.finalize(self, self.backend.close)
-        """Stops the backend process when the SLAM is closed, finished or dropped."""
         self._finished = False
         self._T_world_first = _first_pose(config, T_world_first)
         self.poses = AnchoredPoses(config.backend)
         """Every frame's pose on its anchor keyframe, and the keyframes' poses."""
-        self._map_view: tuple[int, MapView] | None = None
-        """(map revision, its view) of the last `map_view`."""
         self.final_poses: dict[str, float] = {}
         """After `finish`: frames between keyframes re-estimated against the final map
         ('reestimated'), left at their anchored pose ('kept') and the wall-clock 'ms'."""
@@ -162,6 +147,42 @@ class SLAM:
         """After `finish` (`tracking.settle_glitches`): the final trajectory's pose glitches
         ('found', their 'found_timestamps' [s]), those re-estimated from their neighbours'
         path ('re_estimated') and those left out as lost ('left_out')."""
+        self.backend_result: BackendResult | None = None
+        """What the backend reported at `finish`: update times, failures, factors."""
+        self.pointcloud_bytes = 0
+        """Bytes of all processed frames' clouds merged (valid depth x POINT_BYTES): the
+        paper's comparison."""
+        self._dropped: list[DroppedMap] = []
+        """Maps that segments outgrew, whose frames rejoin when keyframes relocalise there."""
+        self._start_map(map)
+
+    def _start_map(self, given: Map | None = None) -> None:
+        """A map (`given`, or an empty one) with its own tracker, backend process and
+        segments: at the start, and again when a segment outgrows the map
+        (`_segment_outgrowing_the_map`)."""
+        config = self.config
+        odometry = RgbdOdometry(config.camera) if config.tracking.rgbd_odometry else None
+        self.tracker = Tracker(
+            config.tracking,
+            odometry,
+            config.camera,
+            config.sensor,
+            config.run.seed,
+            every_keyframe_keypoints=self._every_keyframe_keypoints,
+        )
+        self.backend: Backend = create_backend(self._backend_kind, config.backend)
+        self.map = (
+            given
+            if given is not None
+            else Map(map_config_for(config.map, self.backend), config.objects)
+        )
+        self.map.sensor = config.sensor  # also a given map's: it merges this run's frames
+        if given is not None:
+            self.tracker.expect_jump()
+        self._stop_backend = weakref.finalize(self, self.backend.close)
+        """Stops the backend process when the SLAM is closed, finished or dropped."""
+        self._map_view: tuple[int, MapView] | None = None
+        """(map revision, its view) of the last `map_view`."""
         self._merged_frames: dict[int, int] = {}
         """Map merge number (`MapPlane.seen_in`) -> the frame index merged."""
         self._odometry_since_keyframe: RelativePose | None = None
@@ -181,11 +202,6 @@ class SLAM:
         self._joined_planes: list[tuple[int, int]] = []
         """(absorbed, surviving) map plane ids joined since the last keyframe went to the
         backend, which ties them in the graph with the next one."""
-        self.backend_result: BackendResult | None = None
-        """What the backend reported at `finish`: update times, failures, factors."""
-        self.pointcloud_bytes = 0
-        """Bytes of all processed frames' clouds merged (valid depth x POINT_BYTES): the
-        paper's comparison."""
         self.fused_cloud = FusedCloudSize(FUSED_VOXEL_M)
         """The keyframes' clouds fused with their tracked poses, 1 cm voxels."""
 
@@ -299,6 +315,10 @@ class SLAM:
             self.segments.open is not None or (track.lost and self.config.tracking.segments)
         ):
             track, joined = self.segments.step(index, observation, rgb, depth_m, track)
+            outgrowing = self._segment_outgrowing_the_map(index) if track.lost else None
+            if outgrowing is not None:
+                track = self._restart_from(index, outgrowing, observation, rgb, depth_m, track)
+                joined = outgrowing
         T_world_cam = orthonormalize_pose(track.T_world_cam)
         stage_ms["tracking"] = 1e3 * (time.perf_counter() - t0)
 
@@ -312,6 +332,8 @@ class SLAM:
         self._remember(timestamp, T_world_cam, keyframe, track)
         if joined is not None:
             self._join(index, joined)
+        if keyframe and self._dropped:
+            self._rejoin_dropped(index, observation, rgb, T_world_cam, track)
         self.pointcloud_bytes += POINT_BYTES * int(valid)
         if track.lost:
             logger.info("frame %d (%.3f s) lost: %s", index, timestamp, track.reason)
@@ -385,6 +407,71 @@ class SLAM:
                 "(frames must come in increasing time order)"
             )
         return t
+
+    def _segment_outgrowing_the_map(self, index: int) -> Segment | None:
+        """The open segment if it tracked frame `index` and has tracked more frames than
+        the map holds: it replaces the map, so the run keeps the larger of the two. A loss
+        right after the first frames (a large first step) otherwise leaves every later
+        frame lost when nothing relocalises in the few views of the map; ORB-SLAM likewise
+        resets a map lost within its first keyframes. A given map is never replaced."""
+        segment = self.segments.open
+        outgrows = (
+            segment is not None
+            and index in segment.poses
+            and not self._in_given_map
+            and len(segment.poses) > self.poses.tracked_frames
+        )
+        return segment if outgrows else None
+
+    def _restart_from(
+        self,
+        index: int,
+        segment: Segment,
+        observation: FrameObservation,
+        rgb: np.ndarray | None,
+        depth_m: np.ndarray,
+        track: TrackResult,
+    ) -> TrackResult:
+        """A new map (tracker, backend, segments) starts at frame `index`, at `segment`'s
+        pose of it, the segment's first frame where the old map predicted it. The old map's
+        frames lose their poses until a keyframe relocalises in it (`DroppedMap`). Returns
+        frame `index`'s result; the caller joins the segment at it."""
+        dropped = DroppedMap(self.tracker, self.map_view(), self.poses.forget_keyframes())
+        self._dropped.append(dropped)
+        self._stop_backend()
+        self._start_map()
+        T_world_cam = segment.T_world_seg_guess @ segment.poses[index]
+        self._velocity = segment.velocity
+        self.tracker.start(observation, T_world_cam, rgb, depth_m)
+        note = (
+            f"the segment since frame {segment.first} ({len(segment.poses)} frames) outgrew "
+            f"the map ({len(dropped.poses)} frames tracked), which it never joined: "
+            "a new map starts from it"
+        )
+        logger.info("frame %d: %s", index, note)
+        return TrackResult(T_world_cam, TrackingPath.FIRST, f"{track.reason}; {note}")
+
+    def _rejoin_dropped(
+        self,
+        index: int,
+        observation: FrameObservation,
+        rgb: np.ndarray | None,
+        T_world_cam: np.ndarray,
+        track: TrackResult,
+    ) -> None:
+        """Keyframe `index` at T_world_cam (4, 4) tried in each dropped map: one that places
+        it (confirmed by an earlier keyframe) gives its frames poses again, anchored on it."""
+        for dropped in list(self._dropped):
+            T_old_cam = dropped.place(observation, rgb, T_world_cam, track.keypoints)
+            if T_old_cam is None:
+                continue
+            self.poses.join(index, {**dropped.poses, index: T_old_cam})
+            self._dropped.remove(dropped)
+            logger.info(
+                "frame %d relocalised in a dropped map: its %d frames rejoin",
+                index,
+                len(dropped.poses),
+            )
 
     def _join(self, index: int, segment: Segment) -> None:
         """Frame `index` relocalised in the map and tracked in `segment`: every frame of the
@@ -584,43 +671,6 @@ class SLAM:
         """Every tracked frame's pose, each re-anchored on its optimised keyframe; lost
         frames are left out (as ORB-SLAM does)."""
         return self.poses.trajectory()
-
-
-def map_view(world_map: Map) -> MapView:
-    """The planes, corners, edges and objects (with corners) of `world_map` as tracking's
-    arrays, world frame."""
-    ids, normals, d = world_map.plane_arrays()
-    corner_ids, corner_planes, corner_points = world_map.corner_arrays()
-    corners, planes = world_map.corners, world_map.planes
-    row = {int(pid): k for k, pid in enumerate(ids)}
-    edges = list(world_map.edges.values())
-    objects = [o for o in world_map.objects if o.corners and all(c in corners for c in o.corners)]
-    culled_normals, culled_d, culled_areas = world_map.culled_plane_arrays()
-    return MapView(
-        ids,
-        normals,
-        d,
-        corner_ids,
-        corner_planes,
-        corner_points,
-        np.array([corners[int(c)].convex_edges for c in corner_ids], dtype=np.int64),
-        np.array([planes[int(i)].area_m2 for i in ids], dtype=np.float64),
-        edge_planes=np.array([[row[a], row[b]] for a, b in (e.planes for e in edges)])
-        .astype(np.int64)
-        .reshape(-1, 2),
-        edge_segments=np.array([e.segment for e in edges], dtype=np.float64).reshape(-1, 2, 3),
-        edge_lengths=np.array([e.length_m for e in edges], dtype=np.float64),
-        edge_angles=np.array([e.angle_rad for e in edges], dtype=np.float64),
-        edge_convex=np.array([e.convex for e in edges], dtype=bool),
-        object_classes=tuple(o.cls for o in objects),
-        object_sizes=tuple(tuple(o.size_m) for o in objects),
-        object_centres=np.array(
-            [np.mean([corners[c].point for c in o.corners], axis=0) for o in objects]
-        ).reshape(-1, 3),
-        culled_normals=culled_normals,
-        culled_d=culled_d,
-        culled_areas=culled_areas,
-    )
 
 
 def _first_pose(config: PlaneSlamConfig, T_world_first: np.ndarray | Any | None) -> np.ndarray:

@@ -7,12 +7,19 @@ map, and its dense fallbacks against the previous frame), while every frame is a
 tried against the whole map. A frame that tracks in the segment and is placed in the map
 near the map's prediction or by keypoints joins them; a frame placed by a whole-map
 relocalisation joins them only when a second one puts the segment at the same place
-(`confirms`: a symmetric scene offers places a half-turn off). T_world_seg follows from
+(`PlacementVote`: a symmetric scene offers places a half-turn off). T_world_seg follows from
 the joining frame's two poses, and every frame of the segment gets its world pose
 through it (the orchestrator re-anchors them on the joining frame, so later
 optimisation moves them too).
 A segment frame that the segment cannot track either starts a new segment; frames of a
-segment that never joins stay lost.
+segment that never joins stay lost, unless the segment has tracked more frames than the
+map holds: then it replaces the map (`planeslam.slam.system.SLAM` starts a new map at
+the segment's latest frame, the segment's first frame where the old map predicted it).
+The old map becomes a `DroppedMap`: its frames have no pose until a keyframe of the new
+map relocalises in it, twice at one place, and then rejoin through that keyframe. (ORB-SLAM
+resets a map lost within its first keyframes; ORB-SLAM3's atlas keeps the old map and
+merges it when a place is recognised. Here the old map's frames come back, its
+landmarks do not.)
 
 Nothing of a segment enters the map or the factor graph before it joins: the map stays
 one consistent world, and a joined segment's frames hang on the joining keyframe.
@@ -30,11 +37,32 @@ from planeslam.core.geometry import invert_pose
 from planeslam.core.types import TrackingPath
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.hypotheses import pose_difference
+from planeslam.tracking.keypoints import Keypoints
 from planeslam.tracking.tracker import Tracker, TrackResult
-from planeslam.tracking.views import FrameView, frame_as_map
+from planeslam.tracking.views import FrameView, MapView, frame_as_map
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
+
+
+class PlacementVote:
+    """Where whole-map relocalisations put a set of frames, T_world_set (4, 4). One is not
+    enough (a symmetric scene offers places a half-turn off): a placement counts when the
+    next one puts the set within `fast_max_jump_m` / `fast_max_jump_deg` of it."""
+
+    def __init__(self, config: TrackingConfig) -> None:
+        self.config = config
+        self.candidate: np.ndarray | None = None
+        """(4, 4) the last placement, awaiting the next."""
+
+    def confirms(self, T_world_set: np.ndarray) -> bool:
+        """Whether T_world_set (4, 4) agrees with the last placement; it becomes the
+        candidate either way."""
+        previous, self.candidate = self.candidate, T_world_set
+        if previous is None:
+            return False
+        meters, degrees = pose_difference(previous, T_world_set)
+        return meters <= self.config.fast_max_jump_m and degrees <= self.config.fast_max_jump_deg
 
 
 class Segment:
@@ -54,9 +82,10 @@ class Segment:
         odometry=None,
     ) -> None:
         """Start at frame `index` (its observation, colour and (H, W) depth [m]); `result`
-        the map tracker's (lost) result for it, whose keypoints are reused; `odometry` the
-        map tracker's `odometry.RgbdOdometry` (stateless), so planes that fix only some
-        directions are completed as in the map."""
+        the map tracker's (lost) result for it, whose keypoints are reused and whose pose
+        (the map's prediction) is `T_world_seg_guess`; `odometry` the map tracker's
+        `odometry.RgbdOdometry` (stateless), so planes that fix only some directions are
+        completed as in the map."""
         self.config = config
         self.first = index
         self.tracker = Tracker(config, odometry, camera, sensor, seed, empty_map_starts=False)
@@ -64,24 +93,23 @@ class Segment:
         """Frame index -> T_seg_cam (4, 4) of every frame the segment tracked."""
         self._view = frame_as_map(FrameView.of(observation, camera), np.eye(4))
         self._last = np.eye(4)
-        self._velocity = np.eye(4)
+        self.velocity = np.eye(4)
+        """The last motion T_prev_cur (4, 4) tracked in the segment."""
         self._last_keyframe = np.eye(4)
-        self.T_world_seg_candidate: np.ndarray | None = None
-        """(4, 4) where a relocalised frame put the segment, awaiting a second frame."""
+        self.placements = PlacementVote(config)
+        """Where relocalised frames put the segment in the map (T_world_seg)."""
+        self.T_world_seg_guess = np.eye(4) if result is None else result.T_world_cam
+        """(4, 4) where the map predicted the segment's first frame: its place, should the
+        segment replace the map."""
         keypoints = result.keypoints if result is not None else None
         self.tracker.add_keyframe(index, np.eye(4), rgb, observation.cloud, keypoints)
         self.tracker.start(observation, np.eye(4), rgb, depth_m)
 
     def confirms(self, T_world_cam: np.ndarray, T_seg_cam: np.ndarray) -> bool:
         """Whether a relocalised frame's pose T_world_cam (4, 4), tracked at T_seg_cam (4, 4)
-        in the segment, puts the segment where an earlier relocalised frame did (within
-        `fast_max_jump_m` / `fast_max_jump_deg`); else it becomes the candidate."""
-        T_world_seg = T_world_cam @ invert_pose(T_seg_cam)
-        previous, self.T_world_seg_candidate = self.T_world_seg_candidate, T_world_seg
-        if previous is None:
-            return False
-        meters, degrees = pose_difference(previous, T_world_seg)
-        return meters <= self.config.fast_max_jump_m and degrees <= self.config.fast_max_jump_deg
+        in the segment, puts the segment where an earlier relocalised frame did
+        (`PlacementVote`)."""
+        return self.placements.confirms(T_world_cam @ invert_pose(T_seg_cam))
 
     def track(
         self,
@@ -93,12 +121,12 @@ class Segment:
         """T_seg_cam (4, 4) of frame `index` in the segment, or None when the segment
         cannot track it. A frame far enough from the last keyframe becomes one."""
         result = self.tracker.track(
-            observation, self._view, self._last @ self._velocity, rgb, depth_m
+            observation, self._view, self._last @ self.velocity, rgb, depth_m
         )
         if result.lost:  # a dense fallback's pose counts: the segment only chains motions
             return None
         T = result.T_world_cam
-        self._velocity = invert_pose(self._last) @ T
+        self.velocity = invert_pose(self._last) @ T
         self._last = T
         self.poses[index] = T
         meters, degrees = pose_difference(self._last_keyframe, T)
@@ -107,6 +135,42 @@ class Segment:
             self._last_keyframe = T
             self.tracker.add_keyframe(index, T, rgb, observation.cloud, result.keypoints)
         return T
+
+
+class DroppedMap:
+    """A map that a segment outgrew and replaced: its frames' poses in its own world frame
+    and what places later frames in it, so that its frames rejoin the run when keyframes
+    of the new map relocalise in it (twice at one place: `PlacementVote`)."""
+
+    def __init__(self, tracker: Tracker, view: MapView, poses: dict[int, np.ndarray]) -> None:
+        """`tracker`: the dropped map's (its keyframes' keypoints); `view`: its planes and
+        corners; `poses`: frame index -> T_old_cam (4, 4) of its tracked frames."""
+        self.tracker = tracker
+        self.view = view
+        self.poses = poses
+        self.placements = PlacementVote(tracker.config)
+        """Where relocalised keyframes put this map in the new one (T_new_old)."""
+
+    def place(
+        self,
+        observation: FrameObservation,
+        rgb: np.ndarray | None,
+        T_world_cam: np.ndarray,
+        keypoints: Keypoints | None,
+    ) -> np.ndarray | None:
+        """T_old_cam (4, 4) of a keyframe at T_world_cam (4, 4) in the new map when a
+        whole-map relocalisation places it in this map where the previous one put this map
+        (its frames then rejoin through it), else None. Its `keypoints` are detected in
+        `rgb` when tracking did not need them."""
+        frame = FrameView.of(observation, self.tracker.camera)
+        keypoint_map = self.tracker.keypoint_map
+        cloud = observation.cloud
+        if keypoints is None and keypoint_map is not None and rgb is not None and cloud is not None:
+            keypoints = keypoint_map.detector.detect(rgb, cloud)
+        placed = self.tracker.relocalise(frame, self.view, T_world_cam, keypoints)
+        if placed is None or not self.placements.confirms(T_world_cam @ invert_pose(placed.T)):
+            return None
+        return placed.T
 
 
 class Segments:
