@@ -46,7 +46,7 @@ from planeslam.core.errors import ConfigError, EvaluationError
 from planeslam.core.geometry import invert_pose
 from planeslam.core.types import TrackingPath
 from planeslam.io.sequence import open_dataset
-from planeslam.io.trajectory import Trajectory
+from planeslam.io.trajectory import Trajectory, write_tum
 from planeslam.sim.procedural import (
     DEPTH_MODELS,
     GENERATOR_VERSION,
@@ -59,7 +59,8 @@ from planeslam.sim.procedural import (
 
 from .executors import Job, run_here, run_in_processes, run_on_dask
 from .object_sizes import mean_object_size_error, object_size_errors
-from .trajectory_metrics import evaluate_trajectory
+from .report import FRAME_ERRORS_CSV, write_frame_errors
+from .trajectory_metrics import TrajectoryEvaluation, evaluate_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -175,16 +176,11 @@ class RobustRow:
 # --------------------------------------------------------------------------- metrics
 
 
-def false_jump_m(T_world_gt: np.ndarray, T_world_est: np.ndarray) -> float:
-    """Largest translation error [m] of the motion between consecutive associated poses:
-    max_k |t(inv(dT_gt) dT_est)|, dT = inv(T_{k-1}) T_k; (P, 4, 4) each, same order.
-    Independent of any alignment of the estimate; 0 for fewer than two poses."""
-    if len(T_world_gt) < 2:
-        return 0.0
-    d_gt = np.linalg.inv(T_world_gt[:-1]) @ T_world_gt[1:]
-    d_est = np.linalg.inv(T_world_est[:-1]) @ T_world_est[1:]
-    err = np.linalg.inv(d_gt) @ d_est
-    return float(np.linalg.norm(err[:, :3, 3], axis=1).max())
+def false_jump_m(evaluation: TrajectoryEvaluation) -> float:
+    """Largest translation error [m] of the motion between consecutive evaluated poses
+    (`TrajectoryEvaluation.step_errors_m`, evo's RPE over one frame): a jump the truth does
+    not have, independent of any alignment; 0 for fewer than two poses."""
+    return float(np.max(evaluation.step_errors_m, initial=0.0))
 
 
 def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
@@ -228,13 +224,9 @@ def method_figures(
             object_size_error_m=mean_object_size_error(object_size_errors(objects, truth_objects)),
         )
     try:
-        ev = evaluate_trajectory(truth, estimate)
+        ev = _evaluation(truth, estimate)
     except EvaluationError as exc:
-        if "cannot align" not in str(exc):
-            return replace(base, error=f"EvaluationError: {exc}")
-        # A camera turning in place: no SE(3) alignment exists; both methods start at the
-        # true pose, so their estimates compare unaligned.
-        ev = evaluate_trajectory(truth, estimate, align=False)
+        return replace(base, error=f"EvaluationError: {exc}")
     wrong = 0
     if relocalised is not None and len(relocalised):
         true_poses = np.array([_truth_at(truth, t) for t in relocalised.timestamps])
@@ -242,9 +234,20 @@ def method_figures(
     return replace(
         base,
         ate_m=ev.ate_rmse_m,
-        false_jump_m=false_jump_m(ev.T_world_gt, ev.T_world_est_aligned),
+        false_jump_m=false_jump_m(ev),
         wrong_relocalisations=wrong,
     )
+
+
+def _evaluation(truth: Trajectory, estimate: Trajectory) -> TrajectoryEvaluation:
+    """`evaluate_trajectory` aligned, or unaligned where the positions admit no alignment
+    (a camera turning in place: both methods start at the true pose)."""
+    try:
+        return evaluate_trajectory(truth, estimate)
+    except EvaluationError as exc:
+        if "cannot align" not in str(exc):
+            raise
+        return evaluate_trajectory(truth, estimate, align=False)
 
 
 def _truth_at(truth: Trajectory, timestamp: float) -> np.ndarray:
@@ -274,7 +277,12 @@ def ensure_rendered(recipe: Recipe, data_dir: Path, max_frames: int | None = Non
     return root
 
 
-def _run_planeslam(root: Path, overrides: Sequence[ConfigLayer]) -> tuple[MethodFigures, int]:
+def _run_planeslam(
+    root: Path, overrides: Sequence[ConfigLayer], run_dir: Path | None = None
+) -> tuple[MethodFigures, int]:
+    """planeslam on the sequence at `root`: its figures and frame count; with `run_dir`,
+    its trajectory.txt and frame_errors.csv (each pose's error and its step's, beside the
+    tracking path and reason: `write_frame_errors`) are written there."""
     from planeslam.slam import FrameResult, run_frames, slam_for_dataset
 
     config = resolve_config(root, None, overrides=overrides)
@@ -283,8 +291,17 @@ def _run_planeslam(root: Path, overrides: Sequence[ConfigLayer]) -> tuple[Method
     if truth is None:
         raise EvaluationError(f"{root}: no ground truth")
     relocs: list[tuple[float, np.ndarray]] = []
+    records: list[dict[str, Any]] = []
 
     def note(result: FrameResult) -> None:
+        records.append(
+            {
+                "index": result.index,
+                "timestamp": result.timestamp,
+                "path": result.path.value,
+                "reason": result.reason,
+            }
+        )
         if result.path is TrackingPath.RELOCALISED:
             relocs.append((result.timestamp, result.T_world_cam.copy()))
 
@@ -296,15 +313,21 @@ def _run_planeslam(root: Path, overrides: Sequence[ConfigLayer]) -> tuple[Method
         np.array([t for t, _ in relocs], dtype=np.float64),
         np.array([T for _, T in relocs], dtype=np.float64).reshape(-1, 4, 4),
     )
+    trajectory = slam.trajectory()
     figures = method_figures(
         truth,
-        slam.trajectory(),
+        trajectory,
         summary.frames,
         summary.frames / summary.seconds if summary.seconds > 0 else 0.0,
         relocalised=relocalised,
         objects=slam.map.to_dict()["objects"],
         truth_objects=truth_objects,
     )
+    if run_dir is not None:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        write_tum(run_dir / "trajectory.txt", trajectory)
+        if figures.error is None:
+            write_frame_errors(_evaluation(truth, trajectory), run_dir / FRAME_ERRORS_CSV, records)
     return figures, summary.frames
 
 
@@ -337,15 +360,18 @@ def run_sequence(
     data_dir: str,
     overrides: Sequence[ConfigLayer] = (),
     with_open3d: bool = True,
+    runs_dir: str | None = None,
 ) -> RobustRow:
     """Render (once) and run one sequence with both methods; a method that fails gets
-    its one-line error, never stopping the other."""
+    its one-line error, never stopping the other. With `runs_dir`, planeslam's
+    trajectory.txt and frame_errors.csv go to runs_dir/NAME/."""
     start = time.perf_counter()
     recipe = sequence.recipe
     root = ensure_rendered(recipe, Path(data_dir), sequence.max_frames)
     frames = 0
     try:
-        ours, frames = _run_planeslam(root, overrides)
+        run_dir = None if runs_dir is None else Path(runs_dir) / recipe.name
+        ours, frames = _run_planeslam(root, overrides, run_dir)
     except Exception as exc:  # noqa: BLE001 - a failed run is a row of the table
         log.warning("%s: planeslam failed: %s", recipe.name, exc)
         ours = _failure(exc)
@@ -394,7 +420,8 @@ def run_robust(
 ) -> RobustResult:
     """Run the benchmark's sequences (default: all) with `jobs` at once, locally or on
     Dask; each finished row is appended to out_dir/rows.jsonl (a stopped run keeps its
-    rows) and passed to `on_row`. Rows come back in list order."""
+    rows) and passed to `on_row`; planeslam's trajectory.txt and frame_errors.csv of each
+    sequence go to out_dir/runs/NAME/. Rows come back in list order."""
     if jobs < 1:
         raise ConfigError(f"jobs must be >= 1, got {jobs}")
     seqs = list(sequences if sequences is not None else benchmark_sequences())
@@ -404,7 +431,10 @@ def run_robust(
     rows_path = out / "rows.jsonl"
     rows_path.write_text("", encoding="utf-8")
     start = time.perf_counter()
-    job_list = [Job(run_sequence, (s, str(data), tuple(overrides), with_open3d)) for s in seqs]
+    runs = str(out / "runs")
+    job_list = [
+        Job(run_sequence, (s, str(data), tuple(overrides), with_open3d, runs)) for s in seqs
+    ]
     if executor == "dask":
         outcomes = run_on_dask(job_list, scheduler, jobs)
     elif jobs == 1:

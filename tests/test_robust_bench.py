@@ -4,6 +4,7 @@ documented, checked on planted jumps and planted wrong relocalisations."""
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 from pathlib import Path
@@ -26,6 +27,7 @@ from planeslam.eval.robust import (
     summary_markdown,
     wrong_relocalisations,
 )
+from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.trajectory import Trajectory, read_tum
 from planeslam.sim.procedural import (
     DEPTH_MODELS,
@@ -186,12 +188,20 @@ def test_a_planted_jump_is_the_false_jump() -> None:
     truth = _poses(20)
     estimate = truth.copy()
     estimate[12:, 1, 3] += 0.3  # a 30 cm sideways jump between frames 11 and 12
-    assert false_jump_m(truth, estimate) == pytest.approx(0.3)
-    assert false_jump_m(truth, truth) == pytest.approx(0.0)
+    stamps = np.arange(20, dtype=float)
+
+    def jump(T_world_est: np.ndarray) -> float:
+        evaluation = evaluate_trajectory(
+            Trajectory(stamps, truth), Trajectory(stamps, T_world_est), align=False
+        )
+        return false_jump_m(evaluation)
+
+    assert jump(estimate) == pytest.approx(0.3)
+    assert jump(truth) == pytest.approx(0.0)
     # A rigid offset of the whole estimate is no jump.
     offset = np.eye(4)
     offset[:3, 3] = [1.0, -2.0, 0.5]
-    assert false_jump_m(truth, offset @ truth) == pytest.approx(0.0, abs=1e-12)
+    assert jump(offset @ truth) == pytest.approx(0.0, abs=1e-12)
 
 
 def test_a_planted_wrong_relocalisation_is_counted() -> None:
@@ -279,8 +289,16 @@ def test_a_section_is_replaced_not_repeated() -> None:
 @pytest.mark.slow
 def test_one_sequence_runs_both_methods(tmp_path: Path) -> None:
     recipe = draw_recipe(2, trajectory="orbit", texture="noise", depth_model="kinect")
-    row = run_sequence(BenchSequence(recipe, "tuning"), str(tmp_path))
+    row = run_sequence(
+        BenchSequence(recipe, "tuning"), str(tmp_path), runs_dir=str(tmp_path / "runs")
+    )
     assert row.frames >= 24 and row.planeslam.error is None and row.open3d.error is None
+    with (tmp_path / "runs" / recipe.name / "frame_errors.csv").open() as f:
+        errors = list(csv.DictReader(f))  # one row per tracked frame, with its path
+    assert len(errors) == round(row.planeslam.tracked_fraction * row.frames)
+    assert errors[0]["path"] == "first" and errors[-1]["frame"] == str(row.frames - 1)
+    steps = [float(e["step_error_m"]) for e in errors[1:]]
+    assert max(steps) == pytest.approx(row.planeslam.false_jump_m, abs=1e-6)  # one definition
     assert row.planeslam.tracked_fraction is not None and row.planeslam.ate_m is not None
     assert row.open3d.ate_m is not None and row.planeslam.fps and row.open3d.fps
     # Rendered once: a second run finds the folder and keeps it.
@@ -314,6 +332,8 @@ def test_the_benchmark_runs_on_dask_and_writes_its_page(tmp_path: Path) -> None:
     )
     rows = (tmp_path / "out" / "rows.jsonl").read_text(encoding="utf-8").splitlines()
     assert len(rows) == 2
+    for s in sequences:  # each sequence's own outputs, from the Dask workers too
+        assert (tmp_path / "out" / "runs" / s.recipe.name / "frame_errors.csv").is_file()
     assert "**validation set**" in text
     written = page.read_text(encoding="utf-8")
     assert "kept" in written and "Robust benchmark: test" in written
