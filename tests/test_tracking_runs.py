@@ -99,12 +99,15 @@ def test_a_segment_bridges_a_jump_into_unmapped_space() -> None:
 
 
 @pytest.mark.slow
-def test_a_segment_replaces_a_map_of_one_view_it_cannot_join() -> None:
+def test_a_segment_replaces_a_map_of_one_view_it_cannot_join(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     """The first frame sees the far side of a room (frame 30 of a 60-frame loop), the next
     ones the start of the loop: nothing places them in the one-view map of the first, so
     they were all lost (a segment tracked them but never joined). Now the segment replaces
     that map when it has tracked more frames than it: every frame but the first has a
-    pose (measured ATE 1.4 cm, the merge backend's drift)."""
+    pose (measured ATE 1.4 cm, the merge backend's drift), and the run says which frames
+    of the dropped map have none."""
     cfg = load_config("synthetic")
     scene, path = room_boxes_loop(frames=60)
     rng = np.random.default_rng(1)
@@ -119,6 +122,7 @@ def test_a_segment_replaces_a_map_of_one_view_it_cannot_join() -> None:
     assert trajectory.timestamps.tolist() == [float(k) for k in range(1, len(order))]
     truth = Trajectory(np.arange(len(order), dtype=float), path.T_world_cam[order])
     assert evaluate_trajectory(truth, trajectory, 0.02, 1.0).ate_rmse_m < 0.03
+    assert "frames 0-0 (1 tracked) have no pose" in caplog.text
 
 
 @pytest.mark.slow

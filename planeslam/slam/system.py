@@ -437,7 +437,8 @@ class SLAM:
         frames lose their poses until a keyframe relocalises in it (`DroppedMap`). Returns
         frame `index`'s result; the caller joins the segment at it."""
         dropped = DroppedMap(self.tracker, self.map_view(), self.poses.forget_keyframes())
-        self._dropped.append(dropped)
+        if dropped.poses:  # a map with no tracked frame has nothing to bring back
+            self._dropped.append(dropped)
         self._stop_backend()
         self._start_map()
         T_world_cam = segment.T_world_seg_guess @ segment.poses[index]
@@ -652,6 +653,14 @@ class SLAM:
             )
             self.final_poses, self.settled_glitches = self.poses.settle(final)
         self.backend_result = result
+        for dropped in self._dropped:  # said, not only counted among the lost frames
+            logger.warning(
+                "frames %d-%d (%d tracked) have no pose: frames tracked after a loss "
+                "outgrew their map, and no later keyframe relocalised in it",
+                min(dropped.poses),
+                max(dropped.poses),
+                len(dropped.poses),
+            )
         return 1e3 * (time.perf_counter() - start)
 
     # -------------------------------------------------------------------------- results
