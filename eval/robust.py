@@ -294,14 +294,7 @@ def _run_planeslam(
     records: list[dict[str, Any]] = []
 
     def note(result: FrameResult) -> None:
-        records.append(
-            {
-                "index": result.index,
-                "timestamp": result.timestamp,
-                "path": result.path.value,
-                "reason": result.reason,
-            }
-        )
+        records.append(result.to_record())  # as frames.jsonl holds it
         if result.path is TrackingPath.RELOCALISED:
             relocs.append((result.timestamp, result.T_world_cam.copy()))
 
