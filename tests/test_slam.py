@@ -95,9 +95,11 @@ def test_run_writes_every_output(box_room: Path, tmp_path: Path) -> None:
     out = result.out_dir
     for name in ("config.yaml", "run.json", "trajectory.txt", "frames.jsonl", "map.json",
                  "map_planes.ply", "map_points.ply", "metrics.json", "eval.json", "report.html",
-                 "trajectory.png", "map.png"):  # fmt: skip
+                 "trajectory.png", "map.png", "frame_errors.csv"):  # fmt: skip
         assert (out / name).is_file(), name
     assert len(read_tum(out / "trajectory.txt")) == 6
+    errors = (out / "frame_errors.csv").read_text().splitlines()  # a header, a row a frame
+    assert len(errors) == 7 and errors[1].split(",")[5:7] == ["0", "first"]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["frames"] == 6 and metrics["map_bytes"] > 0
     assert metrics["memory_ratio"] >= 100
