@@ -228,6 +228,33 @@ def _grid(head: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
     return f"<table>\n<tr>{th}</tr>\n{body}\n</table>"
 
 
+def _largest_step_errors(path: Path, shown: int = 10) -> str:
+    """The `shown` largest step errors of a frame_errors.csv (`write_frame_errors`) as a
+    table, largest first: where the trajectory went wrong, and on which tracking path."""
+    text = read_text(path, EvaluationError, MAX_JSON_BYTES, FRAME_ERRORS_CSV)
+    rows = [r for r in csv.DictReader(io.StringIO(text)) if r.get("step_error_m")]
+    try:
+        steps = [
+            (float(r["step_error_m"]), float(r["step_error_deg"]), float(r["error_m"]), r)
+            for r in rows
+        ]
+    except (KeyError, TypeError, ValueError):
+        raise EvaluationError(f"{path}: expected the columns of {FRAME_ERRORS_CSV}") from None
+    steps.sort(key=lambda step: -step[0])
+    head = ("frame", "path", "step error [cm]", "step error [deg]", "pose error [cm]")
+    cells = [
+        (
+            r.get("frame") or "",
+            r.get("path") or "",
+            f"{100 * m:.1f}",
+            f"{deg:.2f}",
+            f"{100 * pose_m:.1f}",
+        )
+        for m, deg, pose_m, r in steps[:shown]
+    ]
+    return "<h3>Largest step errors</h3>\n" + _grid(head, cells)
+
+
 def _object_table(errors: list[dict[str, Any]]) -> str:
     def sizes(v: Any) -> str:
         return "n/a" if v is None else " x ".join(f"{x:.3f}" for x in v)
@@ -419,9 +446,10 @@ def write_report(
 ) -> Path:
     """Write `out_dir`/report.html from the files of a run or evaluation folder, and the
     pictures it shows (map.png, frames.png). Uses, when present: run.json (header: dataset,
-    backend, command, version, date), eval.json, metrics.json, frames.jsonl, map.json with
-    trajectory.txt, and the ground truth (`groundtruth`, else the run's dataset's
-    groundtruth.txt) for the map picture. The run's own pictures (map.png, frames.png,
+    backend, command, version, date), eval.json, metrics.json, frames.jsonl,
+    frame_errors.csv (its largest step errors), map.json with trajectory.txt, and the
+    ground truth (`groundtruth`, else the run's dataset's groundtruth.txt) for the map
+    picture. The run's own pictures (map.png, frames.png,
     trajectory.png, ate_over_time.png; never through a symbolic link) are embedded: the
     page stands alone, with no scripts or external resources.
 
@@ -467,6 +495,8 @@ def write_report(
         ):
             if (out / name).is_file():
                 sections.append(_image(out / name, caption))
+        if (out / FRAME_ERRORS_CSV).is_file():
+            sections.append(_largest_step_errors(out / FRAME_ERRORS_CSV))
     if metrics or records:
         sections.append(_tracking_section(metrics, records))
     if records:

@@ -257,8 +257,8 @@ def test_write_evaluation_and_report(tum_pair: tuple[Path, Path], tmp_path: Path
 
 def test_frame_errors_show_the_one_wrong_step_beside_its_path(tmp_path: Path) -> None:
     """An exact trajectory with one 10 cm step error at row 60: every later pose is off
-    after alignment, but only row 60's step error is, and the frames.jsonl beside the
-    estimate names its frame and path."""
+    after alignment, but only row 60's step error is, the frames.jsonl beside the estimate
+    names its frame and path, and the report lists it first among the largest steps."""
     gt = circle_trajectory(100)
     T = gt.T_world_cam.copy()
     T[60:, 0, 3] += 0.1  # one wrong step: the frames after it follow it
@@ -280,6 +280,9 @@ def test_frame_errors_show_the_one_wrong_step_beside_its_path(tmp_path: Path) ->
     assert np.max(np.delete(steps, 59)) < 1e-6
     assert rows[60]["frame"] == "60" and rows[60]["path"] == "icp"
     assert float(rows[99]["error_m"]) > 0.01  # the aligned poses all carry it
+    page = paths["report"].read_text()  # the largest step errors come first in the report
+    largest = page[page.index("Largest step errors") :]
+    assert largest.index("<td>60</td><td>icp</td><td>10.0</td>") < largest.index("<td>planes</td>")
 
 
 def test_report_needs_something_to_show(tmp_path: Path) -> None:
