@@ -74,7 +74,7 @@ from planeslam.slam.records import FrameResult
 from planeslam.tracking.glitches import PoseGlitches
 from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.segments import DroppedMap, Segment, Segments
-from planeslam.tracking.tracker import MapView, Tracker, TrackResult
+from planeslam.tracking.tracker import FrameView, MapView, Tracker, TrackResult
 
 logger = logging.getLogger(__name__)
 
@@ -461,18 +461,21 @@ class SLAM:
         track: TrackResult,
     ) -> None:
         """Keyframe `index` at T_world_cam (4, 4) tried in each dropped map: one that places
-        it (confirmed by an earlier keyframe) gives its frames poses again, anchored on it."""
+        it (confirmed by an earlier keyframe) gives its frames poses again, anchored on it.
+        Its keypoints are detected here, once, when tracking did not need them."""
+        frame = FrameView.of(observation, self.config.camera)
+        keypoints = track.keypoints
+        keypoint_map, cloud = self.tracker.keypoint_map, observation.cloud
+        if keypoints is None and keypoint_map is not None and rgb is not None and cloud is not None:
+            keypoints = keypoint_map.detector.detect(rgb, cloud)
         for dropped in list(self._dropped):
-            T_old_cam = dropped.place(observation, rgb, T_world_cam, track.keypoints)
+            T_old_cam = dropped.place(frame, T_world_cam, keypoints)
             if T_old_cam is None:
                 continue
             self.poses.join(index, {**dropped.poses, index: T_old_cam})
             self._dropped.remove(dropped)
-            logger.info(
-                "frame %d relocalised in a dropped map: its %d frames rejoin",
-                index,
-                len(dropped.poses),
-            )
+            rejoined = len(dropped.poses)
+            logger.info("frame %d relocalised in a dropped map: %d frames rejoin", index, rejoined)
 
     def _join(self, index: int, segment: Segment) -> None:
         """Frame `index` relocalised in the map and tracked in `segment`: every frame of the

@@ -228,10 +228,8 @@ class DenseFallback:
     def _points(self, cloud: np.ndarray) -> np.ndarray:
         """(P, 3) float64 valid camera-frame points of an (H, W, 3) organised cloud for ICP,
         every icp_stride-th pixel in each direction."""
-        s, cfg = self.config.icp_stride, self.config
-        xyz = cloud[::s, ::s].reshape(-1, 3)
-        keep = (xyz[:, 2] > 0) & (xyz[:, 2] < cfg.max_depth_m) & np.all(np.isfinite(xyz), axis=1)
-        return np.ascontiguousarray(xyz[keep], dtype=np.float64)
+        xyz, _ = sampled_points(cloud, self.config.icp_stride)
+        return np.ascontiguousarray(xyz[xyz[:, 2] < self.config.max_depth_m], dtype=np.float64)
 
     def _icp(self, cloud: np.ndarray, T_world_cam_init: np.ndarray) -> np.ndarray | None:
         """T_world_cam by ICP of this frame's (H, W, 3) organised cloud against the previous

@@ -152,21 +152,11 @@ class DroppedMap:
         """Where relocalised keyframes put this map in the new one (T_new_old)."""
 
     def place(
-        self,
-        observation: FrameObservation,
-        rgb: np.ndarray | None,
-        T_world_cam: np.ndarray,
-        keypoints: Keypoints | None,
+        self, frame: FrameView, T_world_cam: np.ndarray, keypoints: Keypoints | None
     ) -> np.ndarray | None:
-        """T_old_cam (4, 4) of a keyframe at T_world_cam (4, 4) in the new map when a
-        whole-map relocalisation places it in this map where the previous one put this map
-        (its frames then rejoin through it), else None. Its `keypoints` are detected in
-        `rgb` when tracking did not need them."""
-        frame = FrameView.of(observation, self.tracker.camera)
-        keypoint_map = self.tracker.keypoint_map
-        cloud = observation.cloud
-        if keypoints is None and keypoint_map is not None and rgb is not None and cloud is not None:
-            keypoints = keypoint_map.detector.detect(rgb, cloud)
+        """T_old_cam (4, 4) of a keyframe (`frame`, its `keypoints`) at T_world_cam (4, 4)
+        in the new map when a whole-map relocalisation places it in this map where the
+        previous one put this map (its frames then rejoin through it), else None."""
         placed = self.tracker.relocalise(frame, self.view, T_world_cam, keypoints)
         if placed is None or not self.placements.confirms(T_world_cam @ invert_pose(placed.T)):
             return None
