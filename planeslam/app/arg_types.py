@@ -51,3 +51,18 @@ def number(low: float, high: float, open_low: bool = False) -> Callable[[str], f
 SEED = whole(0, MAX_SEED)
 COUNT = whole(1)
 """A count of frames, passes, jobs or a step (at least 1)."""
+
+
+def sigma_pair(text: str) -> tuple[float, float]:
+    """'M,DEG' -> (metres, degrees), both positive and finite: the noise of one step of
+    odometry (argparse type)."""
+    try:
+        sigma_m, sigma_deg = (float(v) for v in text.split(","))
+    except ValueError:
+        sigma_m = sigma_deg = math.nan
+    if not all(0 < v < math.inf for v in (sigma_m, sigma_deg)):
+        raise argparse.ArgumentTypeError(
+            "expected 'M,DEG', two positive numbers (translation [m], rotation [deg]), "
+            f"got {text!r}"
+        )
+    return sigma_m, sigma_deg

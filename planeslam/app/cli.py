@@ -16,7 +16,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from planeslam import __version__
-from planeslam.app.arg_types import COUNT, SEED, number, whole
+from planeslam.app.arg_types import COUNT, SEED, number, sigma_pair, whole
 from planeslam.app.calibrate import add_calibrate_command
 from planeslam.app.config_command import (
     add_config_command,
@@ -170,6 +170,23 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
         help="also write the results as a ROS 2 bag (mcap) in this new folder: /tf, the "
         "path, plane and object markers",
     )
+    p.add_argument(
+        "--odometry",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="the camera's odometry (wheel, IMU) as a TUM trajectory file, on the frames' "
+        "clock and in the camera frame: its motion between frames predicts tracking and "
+        "joins the factor graph",
+    )
+    p.add_argument(
+        "--odometry-sigma",
+        type=sigma_pair,
+        default=(0.02, 1.0),
+        metavar="M,DEG",
+        help="noise of one step of --odometry: translation [m] and rotation [deg] per axis "
+        "(default 0.02,1)",
+    )
     add_viewer_options(p)
     p.set_defaults(func=_cmd_run)
 
@@ -177,6 +194,7 @@ def _add_run(sub: argparse._SubParsersAction) -> None:
 def _cmd_run(args: argparse.Namespace) -> int:
     from planeslam.app.run_folder import default_out_dir
     from planeslam.app.runner import run_sequence
+    from planeslam.io.odometry import OdometryFile
 
     out = args.out if args.out is not None else default_out_dir(args.dataset)
     with viewer_from_args(args, default_out_dir(args.dataset).name) as viewer:
@@ -198,6 +216,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
             map_path=args.map,
             localize=args.localize,
             out_bag=args.out_bag,
+            odometry=(
+                None
+                if args.odometry is None
+                else OdometryFile.load(args.odometry, *args.odometry_sigma)
+            ),
         )
     print(result.text())
     return 0

@@ -45,6 +45,7 @@ from planeslam.core.safe_files import LineWriter, atomic_output, write_text_atom
 from planeslam.eval.metrics import RunMetrics, slam_run_metrics, write_metrics
 from planeslam.eval.report import EvaluationRun, evaluate_to_folder, write_report
 from planeslam.eval.run_info import RunInfo, write_run_info
+from planeslam.io.odometry import OdometryFile
 from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import TumWriter, write_tum
 from planeslam.mapping.json_io import save_json
@@ -158,6 +159,7 @@ def run_sequence(
     map_path: str | Path | None = None,
     localize: bool = False,
     out_bag: str | Path | None = None,
+    odometry: OdometryFile | None = None,
 ) -> RunResult:
     """Run SLAM on a TUM-layout folder and write the outputs listed in the module docstring.
     `map_path`: a map.json to track in (the first frame placed by relocalisation, not by
@@ -168,7 +170,8 @@ def run_sequence(
     reproduces the run as `--config`. `observer` sees every frame; `command` (the
     command line) goes into run.json; `topics` chooses a bag's topics. `out_bag`: a new
     folder for the results as a ROS 2 bag (`planeslam.app.ros_export`), written when the
-    run finishes."""
+    run finishes. `odometry`: the camera's measured motion between frames (wheel, IMU),
+    fed to `SLAM.process` (`planeslam.io.odometry`)."""
     root = Path(dataset_dir)
     out = Path(out_dir)
     if localize and map_path is None:
@@ -197,6 +200,8 @@ def run_sequence(
     indices = frame_indices(len(dataset), run.max_frames, run.every)
     if not indices:
         raise ConfigError(f"{root}: no frames to process")
+    if odometry is not None:
+        odometry.check_covers(dataset.timestamps[indices])
     # Inputs and --map are read and checked before the folder is touched.
     world_map = Map.load(map_path) if map_path is not None else None
     with claim_run_folder(out, [p for p in [dataset.groundtruth_path] if p is not None]):
@@ -232,7 +237,15 @@ def run_sequence(
 
             tally = RunTally()
             try:
-                summary = run_frames(slam, dataset, indices, on_result, tally, deferred_interrupts)
+                summary = run_frames(
+                    slam,
+                    dataset,
+                    indices,
+                    on_result,
+                    tally,
+                    deferred_interrupts,
+                    None if odometry is None else odometry.step,
+                )
             finally:
                 if summary is None:  # interrupted or failed: keep what was computed
                     _write_stopped(slam, out, backend, tally)

@@ -6,7 +6,7 @@ import argparse
 from collections.abc import Callable
 from pathlib import Path
 
-from planeslam.app.arg_types import SEED, number, whole
+from planeslam.app.arg_types import SEED, number, sigma_pair, whole
 from planeslam.app.subcommand import add_command
 from planeslam.core.errors import ConfigError
 
@@ -108,6 +108,15 @@ def add_synth_command(sub: argparse._SubParsersAction) -> None:
         metavar="KIND,...",
         help=f"comma-separated furniture kinds ({', '.join(FURNITURE_KINDS)}; '' for none)",
     )
+    p.add_argument(
+        "--odometry-sigma",
+        type=sigma_pair,
+        default=None,
+        metavar="M,DEG",
+        help="also write odometry.txt: the camera's odometry as a robot's wheels give it, "
+        "each step of the truth with Gaussian noise of M metres and DEG degrees per axis, "
+        "drawn from --seed (for `planeslam run --odometry`)",
+    )
     p.set_defaults(func=_cmd_synth)
 
 
@@ -131,7 +140,9 @@ def _cmd_synth(args: argparse.Namespace) -> int:
 
     check_empty_folder(args.outdir, args.overwrite)
     if args.scene == "procedural":
-        return _procedural(args)
+        _procedural(args)
+        _write_odometry(args)
+        return 0
     if any(getattr(args, k) is not None for k in ("trajectory", "texture", "room", "furniture")):
         raise ConfigError("--trajectory, --texture, --room and --furniture are for 'procedural'")
 
@@ -153,10 +164,29 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     )
     result = render_sequence(args.scene, args.outdir, options, frames=args.frames, seed=args.seed)
     print(f"wrote {result.num_frames} frames of '{result.scene_name}' to {result.out_dir}")
+    _write_odometry(args)
     return 0
 
 
-def _procedural(args: argparse.Namespace) -> int:
+def _write_odometry(args: argparse.Namespace) -> None:
+    """odometry.txt from the rendered groundtruth.txt, with --odometry-sigma (if given)."""
+    if args.odometry_sigma is None:
+        return
+    from planeslam.io.trajectory import read_tum, write_tum
+    from planeslam.sim.odometry import noisy_odometry
+
+    sigma_m, sigma_deg = args.odometry_sigma
+    truth = read_tum(args.outdir / "groundtruth.txt")
+    header = (
+        f"planeslam synthetic odometry, {sigma_m} m and {sigma_deg} deg per step, seed {args.seed}"
+    )
+    write_tum(
+        args.outdir / "odometry.txt", noisy_odometry(truth, sigma_m, sigma_deg, args.seed), header
+    )
+    print(f"wrote {args.outdir / 'odometry.txt'}")
+
+
+def _procedural(args: argparse.Namespace) -> None:
     """Render the procedural recipe of --seed, with the parts the options set."""
     import dataclasses
 
@@ -169,4 +199,3 @@ def _procedural(args: argparse.Namespace) -> int:
         recipe = dataclasses.replace(recipe, furniture=args.furniture)
     result = write_procedural(recipe, args.outdir, max_frames=args.frames)
     print(f"wrote {result.num_frames} frames of '{recipe.name}' to {result.out_dir}")
-    return 0

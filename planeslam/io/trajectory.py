@@ -51,6 +51,24 @@ class Trajectory:
             return None
         return np.array(self.T_world_cam[k], dtype=np.float64)
 
+    def interpolated(self, timestamp: float) -> np.ndarray | None:
+        """(4, 4) T_world_cam at `timestamp` [s], interpolated between the poses around it
+        (position linearly, rotation by slerp), or None outside the poses' time span."""
+        from scipy.spatial.transform import Rotation, Slerp
+
+        if not len(self) or not self.timestamps[0] <= timestamp <= self.timestamps[-1]:
+            return None
+        k = int(np.clip(np.searchsorted(self.timestamps, timestamp), 1, len(self) - 1))
+        if len(self) == 1 or self.timestamps[k - 1] == self.timestamps[k]:
+            return np.array(self.T_world_cam[k], dtype=np.float64)
+        t0, t1 = self.timestamps[k - 1], self.timestamps[k]
+        a = (timestamp - t0) / (t1 - t0)
+        pair = Rotation.from_matrix(self.T_world_cam[k - 1 : k + 1, :3, :3])
+        T = np.eye(4)
+        T[:3, :3] = Slerp([t0, t1], pair)(timestamp).as_matrix()
+        T[:3, 3] = (1 - a) * self.T_world_cam[k - 1, :3, 3] + a * self.T_world_cam[k, :3, 3]
+        return T
+
 
 QUATERNION_NORM_TOLERANCE = 0.01
 """|norm - 1| allowed for a TUM row's quaternion (files round to 4 decimals or more);

@@ -14,6 +14,7 @@ from planeslam.backend.base import BackendKind
 from planeslam.config import PlaneSlamConfig
 from planeslam.core.errors import ConfigError, DatasetFormatError, FrameReadError
 from planeslam.core.native_tuning import single_native_threads
+from planeslam.core.types import RelativePose
 from planeslam.io.dataset import Frame
 from planeslam.io.sequence import RgbdDataset
 from planeslam.slam.records import FrameResult, RunSummary, RunTally
@@ -66,6 +67,7 @@ def run_frames(
     on_result: Callable[[FrameResult], None] | None = None,
     tally: RunTally | None = None,
     guard: Callable[[], AbstractContextManager[object]] | None = None,
+    odometry: Callable[[float, float], RelativePose | None] | None = None,
 ) -> RunSummary:
     """Feed `dataset[i]` for i in `indices` to `slam`; `on_result` sees every FrameResult as
     it comes (write it out there: an interrupted run then keeps what it did), `tally` (when
@@ -74,10 +76,13 @@ def run_frames(
     wholly done and reported, or not begun). The next frame is read on a second thread
     while this one is processed; the 'read' stage is the reader's time, which overlaps
     processing. A frame whose image cannot be read (FrameReadError) is skipped with a
-    warning; DatasetFormatError when no frame can be read."""
+    warning; DatasetFormatError when no frame can be read. `odometry(t_prev, t_cur)`, when
+    given, is the camera's measured motion since the previous processed frame (None where
+    it has none; `planeslam.io.odometry.OdometryFile.step`)."""
     tally = RunTally() if tally is None else tally
     tally.start = time.perf_counter()
     indices = list(indices)
+    previous_stamp: float | None = None
     # Frames are read (PNG decoding releases the GIL) one ahead on a second thread.
     try:
         with (
@@ -95,8 +100,12 @@ def run_frames(
                     tally.skipped_frames += 1
                     logger.warning("frame %d skipped: %s", indices[k], exc)
                     continue
+                step = None
+                if odometry is not None and previous_stamp is not None:
+                    step = odometry(previous_stamp, frame.timestamp)
+                previous_stamp = frame.timestamp
                 with guard() if guard is not None else contextlib.nullcontext():
-                    result = slam.process(frame.depth_m, frame.timestamp, frame.rgb)
+                    result = slam.process(frame.depth_m, frame.timestamp, frame.rgb, step)
                     tally.add(result, read_ms)
                     if on_result is not None:
                         on_result(result)
