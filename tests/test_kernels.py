@@ -186,3 +186,162 @@ def test_link_cells_components_match_scipy_on_the_links(rng):
     _, expected = connected_components(linked, directed=False)
     assert np.array_equal(comp, expected)
     assert np.array_equal(degree, linked.sum(0) + linked.sum(1))
+
+
+# --------------------------------------------------------------------------- intersections
+
+
+def _band_points_numpy(pts, stride, normals, ds, dirs, groups, d_thresh, d_min):
+    """The numpy code `band_points_kernel` replaced: one BLAS (2D, 3) @ (3, K) product."""
+    sub = np.ascontiguousarray(pts[::stride].T)
+    proj = np.concatenate([normals, dirs]) @ sub
+    deg = len(ds)
+    signed = proj[:deg] + ds[:, None]
+    near = (np.abs(signed) < d_thresh) & (np.abs(signed) >= d_min)
+    row, col = np.divmod(np.flatnonzero(near), near.shape[1])
+    return groups[row], signed[near], proj[deg:][near], sub[:, col].T
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+def test_band_points_match_the_blas_product(rng, stride):
+    """Against numpy's BLAS product, on a transposed view like `Plane.points`: the same
+    points, values within 1e-12 (bit for bit where OpenBLAS's dgemm fuses multiply-adds in
+    `_dot3`'s order, as on the Intel Xeon it was written on; another CPU's BLAS kernel may
+    round its last bit otherwise)."""
+    buffer = rng.uniform(-2.0, 2.0, (3, 1200))
+    pts = buffer[:, 100:1100].T  # (K, 3), neither C- nor F-contiguous
+    normals = rng.normal(size=(4, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    dirs = rng.normal(size=(4, 3))
+    ds = rng.uniform(-0.5, 0.5, 4)
+    groups = np.array([5, 0, 2, 7], dtype=np.int64)
+    for d_min in (0.0, 0.05):
+        expected = _band_points_numpy(pts, stride, normals, ds, dirs, groups, 0.3, d_min)
+        got = kernels.band_points_kernel(pts, stride, normals, ds, dirs, groups, 0.3, d_min)
+        assert len(got[0]) > 50
+        assert np.array_equal(expected[0], got[0])  # the same points, in the same order
+        for e, g in zip(expected[1:], got[1:], strict=True):
+            np.testing.assert_allclose(g, e, rtol=0.0, atol=1e-12)
+
+
+def _contact_counts_numpy(grid, k):
+    """The numpy code `contact_counts_kernel` replaced (bincount of lo * n + hi keys)."""
+    n = int(grid.max()) + 1
+    keys = []
+    for a, b in ((grid[:, :-k], grid[:, k:]), (grid[:-k, :], grid[k:, :])):
+        lo, hi = np.minimum(a, b), np.maximum(a, b)
+        touch = (lo >= 0) & (lo != hi)
+        keys.append(lo[touch].astype(np.int64) * n + hi[touch])
+    return np.bincount(np.concatenate(keys), minlength=n * n).reshape(n, n)
+
+
+@pytest.mark.parametrize("k", [1, 2, 5])
+def test_contact_counts_match_bincount(rng, k):
+    labels = rng.integers(-1, 6, (24, 32)).astype(np.int32)
+    labels[:8, :8] = 2  # a larger region
+    grid = labels[::2, ::2]
+    assert np.array_equal(kernels.contact_counts_kernel(grid, k), _contact_counts_numpy(grid, k))
+    assert kernels.contact_counts_kernel(np.full((4, 4), -1, np.int32), 1).shape == (0, 0)
+
+
+def _group_starts(counts):
+    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+
+
+def _trimmed_extents_numpy(te, cnt, trim):
+    start = _group_starts(cnt)
+    last = start + np.maximum(cnt, 1) - 1
+    k = np.minimum(trim, cnt // 100)
+    te_pad = np.append(te, 0.0)
+    lo = te_pad[np.where(cnt > 0, start + k, len(te))]
+    hi = te_pad[np.where(cnt > 0, last - k, len(te))]
+    spacing = (hi - lo) / np.maximum(cnt - 1 - 2 * k, 1)
+    return lo - (k + 1) * spacing, hi + (k + 1) * spacing
+
+
+def _edge_extents_numpy(ge, te, se, core, xyz, stride, trim, min_points, min_length, d_thresh):
+    """The numpy code `edge_extents_kernel` replaced (find_intersections after the sort,
+    `_trimmed_extents` and `_eq6_lengths`)."""
+    ngroups, ends = len(stride), 8
+    npairs = ngroups // 2
+    pe = ge // 2
+    cnt = np.bincount(ge, minlength=ngroups)
+    start = _group_starts(cnt)
+    last = start + np.maximum(cnt, 1) - 1
+    te_pad = np.append(te, 0.0)
+    rlo_g = te_pad[np.where(cnt > 0, start, len(te))]
+    rhi_g = te_pad[np.where(cnt > 0, last, len(te))]
+    lo_g, hi_g = _trimmed_extents_numpy(te, cnt, trim)
+    cnt_core = np.bincount(ge[core], minlength=ngroups)
+    lo_c, hi_c = _trimmed_extents_numpy(te[core], cnt_core, trim)
+    enough = (cnt_core * stride >= min_points) & (cnt_core >= 0.25 * cnt)
+    lo_g, hi_g = np.where(enough, lo_c, lo_g), np.where(enough, hi_c, hi_g)
+    lo = np.maximum(lo_g[0::2], lo_g[1::2])
+    hi = np.minimum(hi_g[0::2], hi_g[1::2])
+    support_g = cnt * stride
+    valid = (np.minimum(support_g[0::2], support_g[1::2]) >= min_points) & (hi - lo >= min_length)
+    in_edge = (te >= lo[pe]) & (te <= hi[pe])
+    w = in_edge.astype(np.float64)
+    side = np.bincount(ge, weights=se * w, minlength=ngroups) / np.maximum(
+        np.bincount(ge, weights=w, minlength=ngroups), 1.0
+    )
+    convex = side[0::2] + side[1::2] < 0
+    support = np.bincount(pe[in_edge], weights=stride[ge[in_edge]], minlength=npairs)
+    both = valid & convex & (np.minimum(cnt[0::2], cnt[1::2]) > 0)
+    lo = np.where(both, np.minimum(lo_g[0::2], lo_g[1::2]), lo)
+    hi = np.where(both, np.maximum(hi_g[0::2], hi_g[1::2]), hi)
+    # eq. 6
+    rlo = np.repeat(np.maximum(rlo_g[0::2], rlo_g[1::2]), 2)
+    rhi = np.repeat(np.minimum(rhi_g[0::2], rhi_g[1::2]), 2)
+    width = 2.0 * float(np.max(np.abs(te))) + 1.0
+    key = ge * width + te
+    groups = np.arange(ngroups)
+    first = np.searchsorted(key, groups * width + rlo, side="left")
+    stop = np.searchsorted(key, groups * width + rhi, side="right")
+    n = np.maximum(stop - first, 0)
+    offs = np.arange(ends)
+    lo_idx = np.minimum(first[:, None] + offs, np.maximum(stop - 1, first)[:, None])
+    hi_idx = np.maximum(stop[:, None] - 1 - offs, first[:, None])
+    idx = np.clip(np.concatenate([lo_idx, hi_idx], axis=1), 0, len(te) - 1)
+    cand = xyz[idx]
+    low = cand[:, :ends].reshape(npairs, 2 * ends, 3)
+    high = cand[:, ends:].reshape(npairs, 2 * ends, 3)
+    diff = low[:, :, None, :] - high[:, None, :, :]
+    diag2 = np.einsum("pabk,pabk->pab", diff, diff).reshape(npairs, -1)
+    ok = np.repeat(n > 0, ends).reshape(npairs, 2 * ends)
+    pair_ok = ok[:, :, None] & ok[:, None, :]
+    diag2 = np.max(np.where(pair_ok.reshape(npairs, -1), diag2, 0.0), axis=1)
+    eq6 = np.sqrt(np.maximum(diag2 - 4.0 * d_thresh**2, 0.0))
+    return lo, hi, valid, convex, support, eq6, side, key, width
+
+
+def test_edge_extents_match_numpy(rng):
+    """Groups of edge points with pairs of both signs of side, strides, a core mask, empty
+    groups and groups of a few points: every output as the numpy code's (flags equal,
+    values within 1e-12)."""
+    npairs = 40
+    sizes = rng.integers(0, 400, 2 * npairs)
+    sizes[[3, 10, 11]] = 0
+    sizes[[5, 20]] = [1, 2]
+    ge = np.repeat(np.arange(2 * npairs), sizes)
+    te = rng.uniform(-1.5, 1.5, len(ge)) + rng.uniform(-0.3, 0.3, 2 * npairs)[ge]
+    side_sign = rng.choice([-1.0, 1.0], 2 * npairs)
+    se = side_sign[ge] * rng.uniform(-0.005, 0.02, len(ge))
+    core = rng.random(len(ge)) < 0.7
+    core[ge == 7] = False
+    xyz = rng.uniform(-2.0, 2.0, (len(ge), 3))
+    stride = rng.choice([1.0, 2.0], 2 * npairs)
+    width = 2.0 * float(np.max(np.abs(te))) + 1.0
+    order = np.argsort(ge * width + te)
+    ge, te, se, core, xyz = ge[order], te[order], se[order], core[order], xyz[order]
+    *expected, key, width = _edge_extents_numpy(ge, te, se, core, xyz, stride, 3, 20, 0.03, 0.02)
+    got = kernels.edge_extents_kernel(
+        key, ge, te, se, core, xyz, stride, width, 3, 20, 0.03, 4.0 * 0.02**2, 8
+    )
+    assert expected[2].any() and not expected[2].all()  # some pairs valid, some not
+    assert expected[3].any() and not expected[3].all()  # convex and concave
+    for e, g in zip(expected, got, strict=True):
+        if e.dtype == bool:
+            assert np.array_equal(e, g)
+        else:  # bit for bit here; numpy's einsum may sum in another order on another CPU
+            np.testing.assert_allclose(g, e, rtol=0.0, atol=1e-12)

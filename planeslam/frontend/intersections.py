@@ -53,8 +53,11 @@ of a box face's plane. The rare mixed case (a thin sheet seen across) is
 decided by the sum of both means.
 
 Speed: a plane with more than `max_points_per_plane` inliers is strided
-down; everything after one small matrix product per plane runs on the few
-points near a partner plane, for all pairs at once.
+down; one compiled pass per plane (`kernels.band_points_kernel`) finds its
+points near each partner plane, and everything after the sort of those few
+points, for all pairs at once, is one more compiled pass
+(`kernels.edge_extents_kernel`). Both do the arithmetic of the numpy code they
+replaced in its order, so the edges are the same bit for bit.
 """
 
 from __future__ import annotations
@@ -67,9 +70,18 @@ import numpy as np
 from planeslam.core.camera import DepthNoiseConfig
 from planeslam.core.errors import GeometryError
 from planeslam.frontend.config import IntersectionConfig
+from planeslam.frontend.kernels import (
+    band_points_kernel,
+    contact_counts_kernel,
+    edge_extents_kernel,
+)
 from planeslam.frontend.types import Plane, Segmentation
 
 logger = logging.getLogger(__name__)
+
+EQ6_ENDS = 8
+"""Eq. 6 searches the farthest pair among this many extreme edge points of each side at
+each end of the common extent."""
 
 
 @dataclass(frozen=True)
@@ -109,19 +121,10 @@ def candidate_pairs(
     grid = labels[::stride, ::stride]
     if grid.size == 0:
         return np.zeros((0, 2), dtype=np.int64)
-    n = int(grid.max()) + 1
-    if n < 2:
+    counts = contact_counts_kernel(grid, max(1, int(round(adjacency_px / stride))))
+    if len(counts) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    k = max(1, int(round(adjacency_px / stride)))
-    keys = []
-    for a, b in ((grid[:, :-k], grid[:, k:]), (grid[:-k, :], grid[k:, :])):
-        lo = np.minimum(a, b)
-        hi = np.maximum(a, b)
-        touch = (lo >= 0) & (lo != hi)
-        keys.append(lo[touch].astype(np.int64) * n + hi[touch])
-    counts = np.bincount(np.concatenate(keys), minlength=n * n)
-    idx = np.flatnonzero(counts >= min_contact_px)
-    return np.stack([idx // n, idx % n], axis=1)
+    return np.argwhere(counts >= min_contact_px).astype(np.int64, copy=False)
 
 
 def intersection_lines(
@@ -144,20 +147,15 @@ def intersection_lines(
 
 
 def _inlier_points(plane: Plane, max_points: int) -> tuple[np.ndarray, int]:
-    """((3, K') inliers as contiguous coordinate rows, stride): strided down to at most
-    `max_points` when that is > 0 (contiguous rows keep the products below in BLAS)."""
-    pts = np.asarray(plane.points)
+    """((K, 3) float64 inliers [m], stride): every stride-th of them is used, at most
+    `max_points` when that is > 0."""
+    pts = np.asarray(plane.points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise GeometryError(f"plane {plane.id}: points must be (K, 3), got shape {pts.shape}")
     stride = 1
     if max_points and len(pts) > max_points:
         stride = int(np.ceil(len(pts) / max_points))
-    return np.ascontiguousarray(pts[::stride].T, dtype=np.float64), stride
-
-
-def _group_starts(counts: np.ndarray) -> np.ndarray:
-    """Start index of each group in an array sorted by group, from (G,) counts."""
-    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    return pts, stride
 
 
 def find_intersections(
@@ -169,9 +167,9 @@ def find_intersections(
 
     Camera frame, metres. Candidate pairs are planes whose regions touch in
     `segmentation.labels` and are not nearly parallel. Each plane's points
-    are scored against all its partners with one (deg, 3) @ (3, K) product;
-    everything after that runs on the points near a partner plane, for all
-    pairs at once. Returns the edges sorted by plane ids; an empty list for
+    are scored against all its partners in one compiled pass; everything
+    after that runs on the points near a partner plane, for all pairs at
+    once. Returns the edges sorted by plane ids; an empty list for
     fewer than two planes. `sensor`: the depth noise sigma(z) of `extent_min_sigmas`
     (default `DepthNoiseConfig()`).
     """
@@ -190,10 +188,13 @@ def find_intersections(
         ],
         dtype=np.int64,
     ).reshape(-1, 2)
-    n_a = np.array([planes[i].normal for i in pairs[:, 0]], dtype=np.float64).reshape(-1, 3)
-    n_b = np.array([planes[j].normal for j in pairs[:, 1]], dtype=np.float64).reshape(-1, 3)
-    d_a = np.array([planes[i].d for i in pairs[:, 0]], dtype=np.float64)
-    d_b = np.array([planes[j].d for j in pairs[:, 1]], dtype=np.float64)
+    # Every plane's (3,) normal and offset [m] as one row of `normals`, `offsets`.
+    row_of = {pid: r for r, pid in enumerate(planes)}
+    normals = np.array([p.normal for p in planes.values()], dtype=np.float64).reshape(-1, 3)
+    offsets = np.array([p.d for p in planes.values()], dtype=np.float64)
+    row_a = np.array([row_of[i] for i in pairs[:, 0].tolist()], dtype=np.int64)
+    row_b = np.array([row_of[j] for j in pairs[:, 1].tolist()], dtype=np.int64)
+    n_a, n_b, d_a, d_b = normals[row_a], normals[row_b], offsets[row_a], offsets[row_b]
     cos = np.einsum("pk,pk->p", n_a, n_b)
     sin2 = 1.0 - cos**2
     ok = sin2 >= np.sin(np.deg2rad(cfg.min_angle_deg)) ** 2
@@ -209,92 +210,63 @@ def find_intersections(
     for p, (i, j) in enumerate(pairs.tolist()):
         partners.setdefault(i, []).append((j, 2 * p))
         partners.setdefault(j, []).append((i, 2 * p + 1))
-    # One (2 deg, 3) @ (3, K) product per plane gives its points' signed distances
-    # to each partner plane and their coordinates t along each pair's line.
-    point_sets: list[np.ndarray] = []
-    ss, ts, gs, srcs, cols, zs = [], [], [], [], [], []
+    # Per plane, one compiled pass over its points against all its partner planes: their
+    # signed distances, and for the points near a partner the coordinate t along the
+    # pair's line (the products of a (2 deg, 3) @ (3, K) BLAS product, bit for bit).
+    ss, ts, gs, xyzs = [], [], [], []
     stride = np.ones(2 * npairs)  # per group: subsampling of the plane its points come from
     for i, plist in partners.items():
         pts, stride_i = _inlier_points(planes[i], cfg.max_points_per_plane)
-        deg = len(plist)
         gids = np.array([g for _, g in plist], dtype=np.int64)
         stride[gids] = stride_i
-        rows = np.concatenate([[planes[j].normal for j, _ in plist], u[gids // 2]])
-        proj = rows @ pts  # (2 deg, K)
-        signed = proj[:deg] + np.array([planes[j].d for j, _ in plist])[:, None]  # [m]
-        near = np.abs(signed) < cfg.d_thresh_m
-        if cfg.d_min_m > 0:
-            near &= np.abs(signed) >= cfg.d_min_m
-        flat = np.flatnonzero(near)  # much faster than 2-D nonzero
-        row, col = np.divmod(flat, near.shape[1])
-        ss.append(signed.ravel()[flat])
-        ts.append(proj[deg:].ravel()[flat])
-        zs.append(pts[2, col])
-        gs.append(gids[row])
-        srcs.append(np.full(len(flat), len(point_sets), dtype=np.int64))
-        cols.append(col)
-        point_sets.append(pts)
+        rows = [row_of[j] for j, _ in plist]
+        g_i, s_i, t_i, xyz_i = band_points_kernel(
+            pts,
+            stride_i,
+            normals[rows],
+            offsets[rows],
+            u[gids // 2],
+            gids,
+            float(cfg.d_thresh_m),
+            float(cfg.d_min_m),
+        )
+        gs.append(g_i)
+        ss.append(s_i)
+        ts.append(t_i)
+        xyzs.append(xyz_i)
     # Edge points of all directed pairs, sorted by (group, t along the line).
     t = np.concatenate(ts)
     g = np.concatenate(gs)
     # One argsort of a composite (group, t) key: ~10x faster than np.lexsort.
     width = 2.0 * float(np.max(np.abs(t), initial=0.0)) + 1.0
-    order = np.argsort(g * width + t)
-    se, ge, te = np.concatenate(ss)[order], g[order], t[order]
-    ze = np.concatenate(zs)[order]
-    src, col = np.concatenate(srcs)[order], np.concatenate(cols)[order]
-    pe = ge // 2
-
-    # Per group: trimmed extent (robust to stray inliers) and raw extent.
-    ngroups = 2 * npairs
-    cnt = np.bincount(ge, minlength=ngroups)
-    start = _group_starts(cnt)
-    last = start + np.maximum(cnt, 1) - 1
-    te_pad = np.append(te, 0.0)  # groups without points read a dummy
-    rlo_g = te_pad[np.where(cnt > 0, start, len(te))]
-    rhi_g = te_pad[np.where(cnt > 0, last, len(te))]
-    lo_g, hi_g = _trimmed_extents(te, ge, cnt, cfg.extent_trim_points)
+    key = g * width + t
+    order = np.argsort(key)
+    se, xyz_e = np.concatenate(ss)[order], np.concatenate(xyzs)[order]
     if cfg.extent_min_sigmas > 0:
-        # Extents from the points that fit only their own plane, where enough remain.
-        sigma = noise.sigma_m(ze)
-        # Where that band would be most of d_thresh (far points) all points count.
-        amb = cfg.extent_min_sigmas * sigma
+        # Extents from the points that fit only their own plane, where enough remain;
+        # where that band would be most of d_thresh (far points) all points count.
+        amb = cfg.extent_min_sigmas * noise.sigma_m(xyz_e[:, 2])
         core = (np.abs(se) >= amb) | (amb >= 0.5 * cfg.d_thresh_m)
-        cnt_core = np.bincount(ge[core], minlength=ngroups)
-        lo_c, hi_c = _trimmed_extents(te[core], ge[core], cnt_core, cfg.extent_trim_points)
-        # A thin core band (noise near d_thresh, far planes) samples the ends poorly.
-        enough = (cnt_core * stride >= cfg.min_edge_points) & (cnt_core >= 0.25 * cnt)
-        lo_g, hi_g = np.where(enough, lo_c, lo_g), np.where(enough, hi_c, hi_g)
-    # The edge is the overlap of both sides' extents.
-    lo = np.maximum(lo_g[0::2], lo_g[1::2])
-    hi = np.minimum(hi_g[0::2], hi_g[1::2])
-    # Edge-point counts in full-resolution terms, so the decision ignores subsampling.
-    support_g = cnt * stride
-    valid = (np.minimum(support_g[0::2], support_g[1::2]) >= cfg.min_edge_points) & (
-        hi - lo >= max(cfg.min_length_m, 1e-9)
+    else:
+        core = np.ones(len(se), dtype=bool)
+    lo, hi, valid, convex, support, eq6, side = edge_extents_kernel(
+        key[order],
+        g[order],
+        t[order],
+        se,
+        core,
+        xyz_e,
+        stride,
+        width,
+        int(cfg.extent_trim_points),
+        int(cfg.min_edge_points),
+        max(float(cfg.min_length_m), 1e-9),
+        4.0 * float(cfg.d_thresh_m) ** 2,
+        EQ6_ENDS,
     )
-
-    # Side of each region relative to the other plane: mean signed distance of its
-    # edge points within the edge's extent (about +-d_thresh / 2; noise averages out).
-    in_edge = (te >= lo[pe]) & (te <= hi[pe])
-    w = in_edge.astype(np.float64)
-    side = np.bincount(ge, weights=se * w, minlength=ngroups) / np.maximum(
-        np.bincount(ge, weights=w, minlength=ngroups), 1.0
-    )
-    convex = side[0::2] + side[1::2] < 0
     mixed = valid & ((side[0::2] < 0) != (side[1::2] < 0))
     if np.any(mixed):
         logger.debug("pairs %s: regions on mixed sides, decided by the sum", pairs[mixed].tolist())
-    support = np.bincount(pe[in_edge], weights=stride[ge[in_edge]], minlength=npairs)
-    # A convex edge is where two faces of one solid meet: both faces end where it
-    # ends, so a side whose points stop early lost pixels (a face seen as a thin
-    # wedge toward its far corner): take the union of the two sides' extents.
-    # (A concave edge keeps the overlap: a floor runs on past the box side it meets.)
-    both = valid & convex & (np.minimum(cnt[0::2], cnt[1::2]) > 0)
-    lo = np.where(both, np.minimum(lo_g[0::2], lo_g[1::2]), lo)
-    hi = np.where(both, np.maximum(hi_g[0::2], hi_g[1::2]), hi)
-
-    eq6 = _eq6_lengths(ge, te, src, col, point_sets, rlo_g, rhi_g, cnt, cfg.d_thresh_m)
     angle = np.arctan2(np.sqrt(sin2), -cos)  # pi - angle between the normals
     edges = []
     for p in np.flatnonzero(valid).tolist():
@@ -311,75 +283,3 @@ def find_intersections(
         )
     logger.debug("%d candidate pairs -> %d real intersections", npairs, len(edges))
     return edges
-
-
-def _trimmed_extents(
-    te: np.ndarray, ge: np.ndarray, cnt: np.ndarray, trim: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Robust [lo, hi] along the line [m] of each group's points: `te` (K,) sorted by
-    (group `ge`, t), `cnt` (G,) points per group. Groups without points get (0, 0)."""
-    start = _group_starts(cnt)
-    last = start + np.maximum(cnt, 1) - 1
-    # Trim at most 1 % of a side's points per end: sparse sides keep all their points.
-    k = np.minimum(trim, cnt // 100)
-    te_pad = np.append(te, 0.0)  # groups without points read a dummy
-    lo = te_pad[np.where(cnt > 0, start + k, len(te))]
-    hi = te_pad[np.where(cnt > 0, last - k, len(te))]
-    # Samples fall short of a segment's true ends by about one mean spacing, and
-    # trimming shrinks it by k more: extend each end by (k + 1) spacings (the
-    # unbiased end-point estimate for evenly spread samples).
-    spacing = (hi - lo) / np.maximum(cnt - 1 - 2 * k, 1)
-    return lo - (k + 1) * spacing, hi + (k + 1) * spacing
-
-
-def _eq6_lengths(
-    ge: np.ndarray,
-    te: np.ndarray,
-    src: np.ndarray,
-    col: np.ndarray,
-    point_sets: list[np.ndarray],
-    rlo_g: np.ndarray,
-    rhi_g: np.ndarray,
-    cnt: np.ndarray,
-    d_thresh: float,
-    ends: int = 8,
-) -> np.ndarray:
-    """Paper eq. 6 for every pair -> (npairs,) lengths [m].
-
-    The edge points of both sides within their raw common extent; the
-    farthest pair of them (searched among the `ends` extreme points of each
-    side at each end along the line) is the diagonal of a cylinder of radius
-    d_thresh: d_edge = sqrt(d_diag^2 - 4 d_thresh^2). `ge`, `te` are the
-    edge points' group and line coordinate sorted by (group, t); point k is
-    column `col[k]` of `point_sets[src[k]]` ((3, K) coordinate rows).
-    """
-    npairs = len(cnt) // 2
-    if len(te) == 0:
-        return np.zeros(npairs)
-    rlo = np.repeat(np.maximum(rlo_g[0::2], rlo_g[1::2]), 2)
-    rhi = np.repeat(np.minimum(rhi_g[0::2], rhi_g[1::2]), 2)
-    # Index range of each group inside the common extent, by searching (group, t) keys.
-    width = 2.0 * float(np.max(np.abs(te))) + 1.0
-    key = ge * width + te
-    groups = np.arange(len(cnt))
-    first = np.searchsorted(key, groups * width + rlo, side="left")
-    stop = np.searchsorted(key, groups * width + rhi, side="right")
-    n = np.maximum(stop - first, 0)
-    offs = np.arange(ends)
-    lo_idx = np.minimum(first[:, None] + offs, np.maximum(stop - 1, first)[:, None])
-    hi_idx = np.maximum(stop[:, None] - 1 - offs, first[:, None])
-    idx = np.clip(np.concatenate([lo_idx, hi_idx], axis=1), 0, len(te) - 1)  # (G, 2 ends)
-    xyz = np.zeros(idx.shape + (3,))
-    flat_src, flat_col = src[idx], col[idx]
-    for k, pts in enumerate(point_sets):  # gather only the few candidates per plane
-        mask = flat_src == k
-        xyz[mask] = pts[:, flat_col[mask]].T
-    # Per pair: low-end candidates of both sides against high-end candidates of both.
-    low = xyz[:, :ends].reshape(npairs, 2 * ends, 3)
-    high = xyz[:, ends:].reshape(npairs, 2 * ends, 3)
-    diff = low[:, :, None, :] - high[:, None, :, :]
-    diag2 = np.einsum("pabk,pabk->pab", diff, diff).reshape(npairs, -1)
-    ok = np.repeat(n > 0, ends).reshape(npairs, 2 * ends)
-    valid = ok[:, :, None] & ok[:, None, :]
-    diag2 = np.max(np.where(valid.reshape(npairs, -1), diag2, 0.0), axis=1)
-    return np.sqrt(np.maximum(diag2 - 4.0 * d_thresh**2, 0.0))

@@ -1,17 +1,25 @@
 """Compiled (numba) loops of the front end's per-pixel work: back-projection, the
-organised segmentation's pixel assignment and the gathering of each plane's inliers.
+organised segmentation's pixel assignment and the gathering of each plane's inliers,
+and the real intersections' search for edge points.
 
 Each kernel does in one pass over the pixels what numpy did in several passes and
 temporary arrays, with the same float32 operations in the same order (no fast-math,
-so no fused multiply-adds): the results are identical to the numpy code they
-replace, bit for bit. Compiled once per machine (`cache=True` keeps the machine code
-beside the module, or in numba's user cache when that is not writable).
+so no fused multiply-adds the compiler chooses): the results are identical to the
+numpy code they replace, bit for bit. The one deliberate fused multiply-add is
+`_dot3`, which computes a 3-vector dot product as OpenBLAS's dgemm kernels do on
+every x86-64 CPU with FMA (Haswell and later, Zen): the intersections' `matrix @
+points` products, reproduced bit for bit without BLAS. Compiled once per machine
+(`cache=True` keeps the machine code beside the module, or in numba's user cache when
+that is not writable).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 
 @njit(cache=True, nogil=True)
@@ -381,6 +389,220 @@ def cells_from_cloud_kernel(
     return x, y, z, valid
 
 
+@intrinsic
+def _fma(typingctx: Any, a: Any, b: Any, c: Any) -> Any:
+    """a * b + c with one rounding (LLVM's llvm.fma), float64; a library call on a CPU
+    without FMA instructions, so the same result everywhere."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+@njit(cache=True, nogil=True)
+def _dot3(a0: float, a1: float, a2: float, x: float, y: float, z: float) -> float:
+    """(a0, a1, a2) . (x, y, z) as OpenBLAS's dgemm accumulates the three products:
+    fma(a2, z, fma(a1, y, a0 x)) (bit for bit `(rows @ points)[r, k]`)."""
+    return _fma(a2, z, _fma(a1, y, a0 * x))  # type: ignore[call-arg]  # (typingctx is numba's)
+
+
+@njit(cache=True, nogil=True)
+def band_points_kernel(
+    points: np.ndarray,
+    stride: int,
+    normals: np.ndarray,
+    ds: np.ndarray,
+    dirs: np.ndarray,
+    groups: np.ndarray,
+    d_thresh: float,
+    d_min: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Edge points of one plane near each of its D partner planes (paper eq. 3 and 5).
+
+    points (K, 3) float64 inliers [m], of which every `stride`-th (0, stride, ...) is
+    tested; partner r: unit normal normals[r] (3,), offset ds[r] [m], the pair's line
+    direction dirs[r] (3,) and group id groups[r]. A point is an edge point of partner
+    r when d_min <= |n_r . p + d_r| < d_thresh [m]. Returns, partner by partner and in
+    point order within a partner: group ids (M,), signed distances n_r . p + d_r (M,)
+    [m], line coordinates t = u_r . p (M,) [m] and the points (M, 3) [m]."""
+    count = (len(points) + stride - 1) // stride
+    size = len(ds) * count
+    group = np.empty(size, dtype=np.int64)
+    signed = np.empty(size)
+    t = np.empty(size)
+    xyz = np.empty((size, 3))
+    m = 0
+    for r in range(len(ds)):
+        n0, n1, n2, d = normals[r, 0], normals[r, 1], normals[r, 2], ds[r]
+        u0, u1, u2 = dirs[r, 0], dirs[r, 1], dirs[r, 2]
+        for k in range(0, len(points), stride):
+            x, y, z = points[k, 0], points[k, 1], points[k, 2]
+            s = _dot3(n0, n1, n2, x, y, z) + d
+            if abs(s) < d_thresh and abs(s) >= d_min:
+                group[m] = groups[r]
+                signed[m] = s
+                t[m] = _dot3(u0, u1, u2, x, y, z)
+                xyz[m, 0] = x
+                xyz[m, 1] = y
+                xyz[m, 2] = z
+                m += 1
+    return group[:m].copy(), signed[:m].copy(), t[:m].copy(), xyz[:m].copy()
+
+
+@njit(cache=True, nogil=True)
+def contact_counts_kernel(grid: np.ndarray, k: int) -> np.ndarray:
+    """Contacts between the labelled regions of an (H, W) int label grid (-1 for none):
+    pixel pairs k apart horizontally or vertically with two different labels lo < hi ->
+    (n, n) int64 counts at [lo, hi], n = the largest label + 1 (0 for an empty grid)."""
+    height, width = grid.shape
+    n = 0
+    for v in range(height):
+        for u in range(width):
+            n = max(n, grid[v, u] + 1)
+    counts = np.zeros((n, n), dtype=np.int64)
+    for v in range(height):
+        for u in range(width):
+            a = grid[v, u]
+            # The neighbours k to the right and k below; past the border, a itself (no contact).
+            right = grid[v, u + k] if u + k < width else a
+            below = grid[v + k, u] if v + k < height else a
+            for b in (right, below):
+                lo, hi = min(a, b), max(a, b)
+                if lo >= 0 and lo != hi:
+                    counts[lo, hi] += 1
+    return counts
+
+
+@njit(cache=True, nogil=True)
+def _extent(t: np.ndarray, start: int, count: int, trim: int) -> tuple[float, float]:
+    """Trimmed extent [lo, hi] [m] of the `count` sorted coordinates t[start:start+count]:
+    at most `trim` (and 1 %) dropped at each end, each end pushed out by (trimmed + 1) mean
+    spacings; (0, 0) for no points."""
+    k = min(trim, count // 100)
+    lo = t[start + k] if count > 0 else 0.0
+    hi = t[start + count - 1 - k] if count > 0 else 0.0
+    spacing = (hi - lo) / max(count - 1 - 2 * k, 1)
+    return lo - (k + 1) * spacing, hi + (k + 1) * spacing
+
+
+@njit(cache=True, nogil=True)
+def edge_extents_kernel(
+    key: np.ndarray,
+    group: np.ndarray,
+    t: np.ndarray,
+    signed: np.ndarray,
+    core: np.ndarray,
+    xyz: np.ndarray,
+    stride: np.ndarray,
+    width: float,
+    trim: int,
+    min_points: int,
+    min_length: float,
+    diag_pad2: float,
+    ends: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Extent, convexity, support and eq. 6 length of every plane pair from its edge points
+    (the steps after eq. 3 and 5 in `intersections`' module docstring).
+
+    The K edge points of all G = 2P groups (group 2p: pair p's plane A's points near plane
+    B, 2p + 1 the reverse), sorted by key = group * width + t: group (K,) int64, t (K,)
+    coordinate along the pair's line [m], signed (K,) distance to the other plane [m],
+    core (K,) bool (far enough from the other plane to count for the extent), xyz (K, 3)
+    [m]; stride (G,) subsampling of each group's plane. A side's extent is `_extent` of its
+    core points where they are enough (min_points at full resolution and a quarter of
+    the side), else of all its points; the edge is the overlap of both sides' extents
+    (the union for a convex edge). Eq. 6: the farthest pair among the `ends` extreme
+    points of each side at each end of the raw common extent, minus diag_pad2 =
+    (2 d_thresh)^2. Returns per pair (P,): lo, hi [m] along the line, valid, convex,
+    support (edge points within the extent, full-resolution count), eq. 6 length [m];
+    and per group (G,) the side: mean signed distance within the edge's extent [m]."""
+    n_groups = len(stride)
+    n_pairs = n_groups // 2
+    n = len(t)
+    cnt = np.zeros(n_groups, dtype=np.int64)
+    cnt_core = np.zeros(n_groups, dtype=np.int64)
+    t_core = np.empty(n)
+    m = 0
+    for i in range(n):
+        cnt[group[i]] += 1
+        if core[i]:
+            cnt_core[group[i]] += 1
+            t_core[m] = t[i]
+            m += 1
+    start = np.zeros(n_groups, dtype=np.int64)
+    start_core = np.zeros(n_groups, dtype=np.int64)
+    for g in range(1, n_groups):
+        start[g] = start[g - 1] + cnt[g - 1]
+        start_core[g] = start_core[g - 1] + cnt_core[g - 1]
+    lo_g, hi_g = np.empty(n_groups), np.empty(n_groups)
+    rlo_g, rhi_g = np.zeros(n_groups), np.zeros(n_groups)
+    for g in range(n_groups):
+        c = cnt_core[g]
+        if c * stride[g] >= min_points and c >= 0.25 * cnt[g]:
+            lo_g[g], hi_g[g] = _extent(t_core, start_core[g], c, trim)
+        else:
+            lo_g[g], hi_g[g] = _extent(t, start[g], cnt[g], trim)
+        if cnt[g] > 0:
+            rlo_g[g], rhi_g[g] = t[start[g]], t[start[g] + cnt[g] - 1]
+
+    lo, hi = np.empty(n_pairs), np.empty(n_pairs)
+    valid = np.zeros(n_pairs, dtype=np.bool_)
+    convex = np.zeros(n_pairs, dtype=np.bool_)
+    support = np.zeros(n_pairs)
+    eq6 = np.zeros(n_pairs)
+    side = np.zeros(n_groups)
+    first = np.empty(2, dtype=np.int64)
+    stop = np.empty(2, dtype=np.int64)
+    cand = np.empty((2, 2 * ends), dtype=np.int64)  # (low end, high end) x (side, rank)
+    for p in range(n_pairs):
+        a, b = 2 * p, 2 * p + 1
+        lo[p] = lo_g[a] if lo_g[a] >= lo_g[b] else lo_g[b]
+        hi[p] = hi_g[a] if hi_g[a] <= hi_g[b] else hi_g[b]
+        valid[p] = min(cnt[a] * stride[a], cnt[b] * stride[b]) >= min_points and (
+            hi[p] - lo[p] >= min_length
+        )
+        for g in (a, b):
+            total, inside = 0.0, 0.0
+            for i in range(start[g], start[g] + cnt[g]):
+                if t[i] >= lo[p] and t[i] <= hi[p]:
+                    total += signed[i]
+                    inside += 1.0
+                    support[p] += stride[g]
+            side[g] = total / max(inside, 1.0)
+        convex[p] = side[a] + side[b] < 0
+        if valid[p] and convex[p] and min(cnt[a], cnt[b]) > 0:
+            lo[p], hi[p] = min(lo_g[a], lo_g[b]), max(hi_g[a], hi_g[b])
+
+        if n == 0:
+            continue
+        rlo = max(rlo_g[a], rlo_g[b])
+        rhi = min(rhi_g[a], rhi_g[b])
+        for s, g in enumerate((a, b)):
+            first[s] = np.searchsorted(key, g * width + rlo, side="left")
+            stop[s] = np.searchsorted(key, g * width + rhi, side="right")
+            for o in range(ends):
+                low = min(first[s] + o, max(stop[s] - 1, first[s]))
+                high = max(stop[s] - 1 - o, first[s])
+                cand[0, s * ends + o] = min(max(low, 0), n - 1)
+                cand[1, s * ends + o] = min(max(high, 0), n - 1)
+        best = 0.0
+        for c0 in range(2 * ends):
+            if stop[c0 // ends] <= first[c0 // ends]:
+                continue
+            i = cand[0, c0]
+            for c1 in range(2 * ends):
+                if stop[c1 // ends] <= first[c1 // ends]:
+                    continue
+                j = cand[1, c1]
+                dx, dy, dz = xyz[i, 0] - xyz[j, 0], xyz[i, 1] - xyz[j, 1], xyz[i, 2] - xyz[j, 2]
+                diag2 = (dx * dx + dz * dz) + dy * dy  # the order numpy's einsum sums them
+                best = max(best, diag2)
+        eq6[p] = np.sqrt(max(best - diag_pad2, 0.0))
+    return lo, hi, valid, convex, support, eq6, side
+
+
 _WARM = False
 
 
@@ -411,4 +633,9 @@ def warm_up() -> None:
     group_sums_kernel(np.zeros(n, np.int64), count, mean, scatter, 1)
     dense_components_kernel(np.ones((n, n), np.bool_))
     flood_fill_kernel(planar, 1, n, 0)
+    points = np.ones((3, 2 * n))[:, :n].T  # a plane's points: a view of segmentation's buffer
+    band_points_kernel(points, 1, normal, vec, normal, count, 0.02, 0.0)
+    contact_counts_kernel(np.zeros((2 * n, 2 * n), np.int32)[::2, ::2], 1)
+    key, flag = np.arange(n, dtype=np.float64), np.ones(n, np.bool_)
+    edge_extents_kernel(key, count - 1, key, key, flag, normal, vec, 1.0, 3, 1, 0.01, 0.0, 8)
     _WARM = True
