@@ -8,7 +8,7 @@ import pytest
 from scipy import ndimage
 from scipy.sparse.csgraph import connected_components
 
-from planeslam.frontend import kernels
+from planeslam.frontend import kernels, plane_kernels
 
 pytestmark = pytest.mark.unit
 
@@ -345,3 +345,54 @@ def test_edge_extents_match_numpy(rng):
             assert np.array_equal(e, g)
         else:  # bit for bit here; numpy's einsum may sum in another order on another CPU
             np.testing.assert_allclose(g, e, rtol=0.0, atol=1e-12)
+
+
+def _outline_points_numpy(poly, u0, v0, small_shape, s, rays, normal, d):
+    """The numpy code `outline_points_kernel` replaced (end of `segment_common._outline`)."""
+    height, width = rays.shape[:2]
+    u, v = poly[:, 0] + u0, poly[:, 1] + v0
+    last_v, last_u = small_shape[0] - 1, small_shape[1] - 1
+    u = np.where(u == last_u, width - 1, np.minimum(np.maximum(s * u, 0), width - 1))
+    v = np.where(v == last_v, height - 1, np.minimum(np.maximum(s * v, 0), height - 1))
+    r = rays[v, u]
+    along = r @ normal
+    along = np.where(np.abs(along) > 1e-9, along, -1e-9)
+    return r * (-d / along)[:, None]
+
+
+@pytest.mark.parametrize("dtype", [np.int32, np.int64])
+def test_outline_points_match_numpy(rng, dtype):
+    """Vertices on the last sampled row / column go to the image border; a ray parallel to
+    the plane meets it at -d / -1e-9. Within 1e-12 (bit for bit where OpenBLAS's dgemv
+    fuses as the kernel does, as on the Intel Xeon it was written on)."""
+    height, width, s = 31, 40, 3
+    rays = np.dstack([rng.uniform(-0.6, 0.6, (height, width, 2)), np.ones((height, width))])
+    small_shape = (11, 14)  # rays[::3, ::3].shape
+    eig = np.linalg.eigh(np.diag([3.0, 1.0, 2.0]) + 0.1)[1]
+    for normal in (eig[:, 0], rng.normal(size=3), np.array([1.0, 0.0, 0.0])):
+        normal = normal / np.linalg.norm(normal) if normal.flags.owndata else normal
+        poly = np.column_stack([rng.integers(0, 9, 20), rng.integers(0, 7, 20)]).astype(dtype)
+        poly[:3] = [[8, 0], [0, 6], [8, 6]]  # with (u0, v0) = (5, 4): the last column / row
+        rays[12, 15] = [-1.0, 0.5, 0.0]  # perpendicular to the third normal
+        poly[3] = [0, 0]
+        expected = _outline_points_numpy(poly, 5, 4, small_shape, s, rays, normal, 1.7)
+        got = plane_kernels.outline_points_kernel(poly, 5, 4, small_shape, s, rays, normal, 1.7)
+        np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("count", [500, 9000])
+def test_inverse_depth_noise_matches_numpy(rng, count):
+    """Against `inverse_depth_residual_steps` on every (K // 4096)-th point, within 1e-12."""
+    from planeslam.core.quantised_fit import inverse_depth_residual_steps
+
+    normal = np.array([0.1, -0.2, -1.0]) / np.linalg.norm([0.1, -0.2, -1.0])
+    d = 3.0
+    xy = rng.uniform(-1.0, 1.0, (2, count))
+    z = (d + normal[:2] @ xy) / -normal[2] + rng.normal(0.0, 0.004, count)
+    buffer = np.ones((3, count + 10))
+    buffer[:, :count] = np.vstack([xy, z])
+    xyz = buffer[:, :count]  # a view of segmentation's (3, N) buffer
+    for step in (0.00285, 0.02):
+        expected = inverse_depth_residual_steps(xyz[:, :: max(1, count // 4096)].T, normal, d, step)
+        got = plane_kernels.inverse_depth_noise_kernel(xyz, normal, d, step, 4096)
+        assert abs(got - expected) <= 1e-12 * max(expected, 1.0)

@@ -111,6 +111,24 @@ def test_the_rounding_bias_bound_and_bad_values() -> None:
         fit_quantised_plane(np.ones((3, 3)), STEP)
 
 
+def test_the_gate_decides_as_numpy_at_its_threshold(rng) -> None:
+    """`_rounding_could_bias` takes the noise from a compiled pass; with the offset sigma
+    set so that the bias is 1e-9 (relative) on either side of the threshold, too close for
+    that pass, numpy's computation decides."""
+    from planeslam.frontend.segment_common import _rounding_could_bias
+
+    depth = _quantised_wall([0.02, -0.006, -1.0], 5.55, 0.2, rng)
+    (plain,) = segment_planes(depth, RAYS, sensor=NOT_QUANTISED).planes
+    xyz = np.ascontiguousarray(plain.points.T)
+    sample = xyz[:, :: max(1, xyz.shape[1] // 4096)].T  # the gate's evenly spread points
+    noise = inverse_depth_residual_steps(sample, plain.normal, plain.d, STEP)
+    bias = quantisation_bias_m(float(plain.centroid[2]), STEP, noise)
+    for factor, expected in ((1.0 - 1e-9, True), (1.0 + 1e-9, False)):
+        covariance = np.diag([1.0, 1.0, (0.5 * bias * factor) ** 2])
+        gate = _rounding_could_bias(xyz, plain.normal, plain.d, plain.centroid, covariance, STEP)
+        assert gate is expected
+
+
 def test_a_fit_that_fails_keeps_the_least_squares_plane(rng, monkeypatch) -> None:
     import planeslam.frontend.segment_common as segment_common
 

@@ -15,11 +15,11 @@ that is not writable).
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
+
+from planeslam.frontend.fused import fma as _fma
+from planeslam.frontend.plane_kernels import warm_up_plane_kernels
 
 
 @njit(cache=True, nogil=True)
@@ -389,18 +389,6 @@ def cells_from_cloud_kernel(
     return x, y, z, valid
 
 
-@intrinsic
-def _fma(typingctx: Any, a: Any, b: Any, c: Any) -> Any:
-    """a * b + c with one rounding (LLVM's llvm.fma), float64; a library call on a CPU
-    without FMA instructions, so the same result everywhere."""
-    sig = types.float64(types.float64, types.float64, types.float64)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        return builder.fma(*args)
-
-    return sig, codegen
-
-
 @njit(cache=True, nogil=True)
 def _dot3(a0: float, a1: float, a2: float, x: float, y: float, z: float) -> float:
     """(a0, a1, a2) . (x, y, z) as OpenBLAS's dgemm accumulates the three products:
@@ -638,4 +626,5 @@ def warm_up() -> None:
     contact_counts_kernel(np.zeros((2 * n, 2 * n), np.int32)[::2, ::2], 1)
     key, flag = np.arange(n, dtype=np.float64), np.ones(n, np.bool_)
     edge_extents_kernel(key, count - 1, key, key, flag, normal, vec, 1.0, 3, 1, 0.01, 0.0, 8)
+    warm_up_plane_kernels()
     _WARM = True

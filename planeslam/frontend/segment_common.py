@@ -31,6 +31,7 @@ from planeslam.core.quantised_fit import (
     inverse_depth_residual_steps,
     quantisation_bias_m,
 )
+from planeslam.frontend.plane_kernels import inverse_depth_noise_kernel, outline_points_kernel
 from planeslam.frontend.types import Plane, Segmentation
 
 log = logging.getLogger(__name__)
@@ -200,11 +201,19 @@ def _rounding_could_bias(
     """Whether the 1/z rounding (`step` [1/m]) could bias the least-squares plane (normal,
     d) of the points xyz (3, K) by more than twice its own offset sigma (significant at 2
     sigma): the noise about it, from up to `sample` evenly spread points, is too small to
-    dither the rounding at the centroid's depth."""
+    dither the rounding at the centroid's depth.
+
+    The noise comes from a compiled pass, equal to numpy's to about 1e-12; where the bias
+    is within 1e-6 (relative) of the threshold, the numpy computation decides, so the
+    answer is always numpy's."""
+    threshold = 2.0 * np.sqrt(covariance[2, 2])
+    sigma_steps = inverse_depth_noise_kernel(xyz, normal, d, step, sample)
+    bias = quantisation_bias_m(float(centroid[2]), step, sigma_steps)
+    if abs(bias - threshold) > 1e-6 * threshold:
+        return bool(bias > threshold)
     points = xyz[:, :: max(1, xyz.shape[1] // sample)].T
     sigma_steps = inverse_depth_residual_steps(points, normal, d, step)
-    bias = quantisation_bias_m(float(centroid[2]), step, sigma_steps)
-    return bias > 2.0 * np.sqrt(covariance[2, 2])
+    return bool(quantisation_bias_m(float(centroid[2]), step, sigma_steps) > threshold)
 
 
 def _quantised_refit(
@@ -265,13 +274,4 @@ def _outline(
     poly = poly.reshape(-1, 2)
     if len(poly) < 3:
         poly = np.round(cv2.boxPoints(cv2.minAreaRect(contour))).astype(np.int64)
-    u, v = poly[:, 0] + u0, poly[:, 1] + v0
-    # A region on the last sampled row / column reaches the image border.
-    last_v, last_u = labels_small.shape[0] - 1, labels_small.shape[1] - 1
-    # (np.minimum(np.maximum(...)) is np.clip for integers, without its Python layers)
-    u = np.where(u == last_u, grid.width - 1, np.minimum(np.maximum(s * u, 0), grid.width - 1))
-    v = np.where(v == last_v, grid.height - 1, np.minimum(np.maximum(s * v, 0), grid.height - 1))
-    rays = grid.rays[v, u]
-    along = rays @ normal
-    along = np.where(np.abs(along) > 1e-9, along, -1e-9)
-    return rays * (-d / along)[:, None]
+    return outline_points_kernel(poly, u0, v0, labels_small.shape, s, grid.rays, normal, d)
