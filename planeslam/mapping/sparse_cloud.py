@@ -11,6 +11,7 @@ import numpy as np
 
 from planeslam.core.errors import MapError
 from planeslam.core.geometry import transform_points
+from planeslam.frontend.cloud import sampled_points
 
 logger = logging.getLogger(__name__)
 
@@ -158,6 +159,18 @@ class FusedCloudSize:
             self._worker.submit(self._add, points, T_world_points)
         ]
 
+    def add_sampled(self, cloud: np.ndarray, stride: int, T_world_cam: np.ndarray) -> None:
+        """The valid points (z > 0, finite) of every `stride`-th pixel in each direction of
+        an organised (H, W, 3) camera-frame cloud [m], moved to the world by T_world_cam
+        (4, 4). With `background` the sampling runs on the worker too, off the caller's
+        path. The caller must change neither array afterwards."""
+        if self._worker is None:
+            self._add_sampled(cloud, stride, T_world_cam)
+            return
+        self._queued = [f for f in self._queued if not f.done()] + [
+            self._worker.submit(self._add_sampled, cloud, stride, T_world_cam)
+        ]
+
     @property
     def voxels(self) -> int:
         """Occupied voxels so far (waits for the queued additions)."""
@@ -177,6 +190,9 @@ class FusedCloudSize:
         self._pending.append(_distinct(_pack(keys)))
         if len(self._pending) >= self._flush_every:
             self._flush()
+
+    def _add_sampled(self, cloud: np.ndarray, stride: int, T_world_cam: np.ndarray) -> None:
+        self._add(sampled_points(cloud, stride)[0], T_world_cam)
 
     def _flush(self) -> None:
         if self._pending:

@@ -599,8 +599,8 @@ class SLAM:
     def _add_to_fused_cloud(self, observation: FrameObservation, T_world_cam: np.ndarray) -> None:
         if observation.cloud is None:
             return
-        xyz = observation.cloud[::FUSED_STRIDE, ::FUSED_STRIDE].reshape(-1, 3)
-        self.fused_cloud.add(xyz[xyz[:, 2] > 0], T_world_cam.copy())  # a new array: kept as is
+        # sampled on the fused cloud's worker; the cloud is never written after the front end
+        self.fused_cloud.add_sampled(observation.cloud, FUSED_STRIDE, T_world_cam.copy())
 
     def _add_sparse_points(self, observation, T_world_cam, rgb) -> None:
         """Non-planar points of the frame (label -1), subsampled, into the map's sparse cloud."""

@@ -165,21 +165,31 @@ class PlanePath:
         Solved, re-associated under the solution and solved again; after each solve the
         correspondences whose residuals exceed the gates (wrong matches, a plane whose
         border was mis-segmented) are dropped and the pose re-solved without them, so one
-        outlier does not cost the frame its plane pose. None without correspondences."""
+        outlier does not cost the frame its plane pose. None without correspondences.
+        Every solve starts from T_pred, so a set of correspondences met again (the second
+        association often repeats the first) takes its earlier solve."""
+        solved: dict[tuple[tuple[tuple[int, int], ...], ...], RegistrationResult] = {}
+
+        def solve(assoc: Association) -> RegistrationResult:
+            key = (tuple(assoc.planes), tuple(assoc.corners))
+            if key not in solved:
+                solved[key] = self._solve(frame, view, assoc, T_pred)
+            return solved[key]
+
         T = T_pred
         result: PoseSolve | None = None
         for _ in range(2):
             assoc = self.associate(frame, view, T)
             if not assoc.planes:
                 return result
-            reg = self._solve(frame, view, assoc, T_pred)
+            reg = solve(assoc)
             for _ in range(self.config.max_outlier_rounds):
                 kept = self._inliers(frame, assoc, reg)
                 if kept is None:
                     break
                 if not kept.planes:
                     return result
-                assoc, reg = kept, self._solve(frame, view, kept, T_pred)
+                assoc, reg = kept, solve(kept)
             result, T = PoseSolve(reg, assoc), reg.T
         return result
 
