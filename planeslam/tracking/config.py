@@ -49,8 +49,12 @@ class PointConfig:
     min_inliers: int = 12
     """Point matches a pose needs before points alone may constrain it."""
     vote_max_distance: int = 50
-    """Relocalisation: descriptor distance [bits] within which a nearest neighbour votes
-    for its keyframe."""
+    """Descriptor distance [bits] within which two keypoints may be one point: a nearest
+    neighbour votes for its keyframe (relocalisation), a guided match is made."""
+    guided_radius_px: float = 10.0
+    """Matching by projection: a keyframe point projected with a candidate pose (one a
+    texture period from the points' best, `tracking.periodic`) matches a keypoint within
+    this radius [pixels] (0: none)."""
     vote_descriptors: int = 300
     """Relocalisation: descriptors per keyframe that take part in the vote."""
     vote_keyframes: int = 3
@@ -89,6 +93,10 @@ class PointConfig:
                 "tracking.points: inlier_margin_m must be >= 0, fast_threshold and "
                 f"vote_max_distance >= 1 (got {self.inlier_margin_m}, {self.fast_threshold}, "
                 f"{self.vote_max_distance})"
+            )
+        if not self.guided_radius_px >= 0:
+            raise ConfigError(
+                f"tracking.points.guided_radius_px must be >= 0, got {self.guided_radius_px}"
             )
 
 

@@ -13,6 +13,7 @@ is T_world_cam (4, 4).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -44,6 +45,7 @@ from planeslam.tracking.keypoints import (
     point_residuals,
     ransac_pose,
 )
+from planeslam.tracking.periodic import period_shifts, texture_period
 from planeslam.tracking.plane_path import PlanePath, keep_within
 from planeslam.tracking.views import FrameView, MapView
 
@@ -273,6 +275,7 @@ class JointEstimator:
         tracking: bool,
         T_last: np.ndarray | None = None,
         frame_gap_s: float = np.inf,
+        match_at: Callable[[np.ndarray], PointMatches] | None = None,
     ) -> JointSolve | None:
         """The best-supported `solve` over the start poses that is corroborated. While
         `tracking` (the previous frame was tracked): within the fast path's correction of
@@ -281,7 +284,9 @@ class JointEstimator:
         least `points.min_inliers` point matches or `relocalise_min_planes` inlier planes
         (a jump is not taken on one frame's evidence: aliased keypoints agree on wrong
         poses too). After a loss: at least `points.min_inliers` point matches (planes alone
-        far from a prediction prove little: three of them always fit)."""
+        far from a prediction prove little: three of them always fit). While tracking, with
+        `match_at(T)` (matches by projection under a (4, 4) pose), copies of the best a
+        texture period away join its rivals (`with_period_rivals`)."""
         cfg = self.config
         corroborated_solves: list[JointSolve] = []
         solved: list[np.ndarray] = []
@@ -308,7 +313,10 @@ class JointEstimator:
         if not corroborated_solves:
             return None
         best = max(corroborated_solves, key=lambda c: c.score)
-        return self._nearest_of_rivals(best, corroborated_solves, keypoints, matches, T_pred)
+        best = self._nearest_of_rivals(best, corroborated_solves, keypoints, matches, T_pred)
+        if tracking and match_at is not None:
+            best = self.with_period_rivals(frame, view, best, keypoints, matches, T_pred, match_at)
+        return best
 
     def _nearest_of_rivals(
         self,
@@ -331,6 +339,37 @@ class JointEstimator:
             if nearer < chosen_offset and is_rival(best, candidate, best_mask, mask, self.config):
                 chosen, chosen_offset = candidate, nearer
         return chosen
+
+    def with_period_rivals(
+        self,
+        frame: FrameView,
+        view: MapView,
+        best: JointSolve,
+        keypoints: Keypoints | None,
+        matches: PointMatches,
+        T_pred: np.ndarray,
+        match_at: Callable[[np.ndarray], PointMatches],
+    ) -> JointSolve:
+        """`best`, or a copy of it whole texture periods away (`periodic`) nearer the
+        prediction T_pred (4, 4) that rivals it, when points filled a direction the planes
+        left free and `best` is not near the prediction: each shifted pose is matched again
+        by projection (`match_at(T)`, (4, 4) T_world_cam) and solved."""
+        cfg = self.config
+        if (
+            keypoints is None
+            or best.path is not TrackingPath.PLANES_POINTS
+            or motion.near(cfg, best.T, T_pred)
+        ):
+            return best
+        period = texture_period(keypoints, best.T[:3, :3], cfg.points.min_inliers)
+        if period is None:
+            return best
+        candidates = [best]
+        for T in period_shifts(best.T, period):
+            shifted = self.solve(frame, view, T, keypoints, match_at(T))
+            if shifted is not None and shifted.point_inliers >= cfg.points.min_inliers:
+                candidates.append(shifted)
+        return self._nearest_of_rivals(best, candidates, keypoints, matches, T_pred)
 
     def point_pose(self, keypoints: Keypoints, matches: PointMatches) -> np.ndarray | None:
         """T_world_cam (4, 4) of a point RANSAC over `matches`, or None."""

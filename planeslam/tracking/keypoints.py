@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig
-from planeslam.core.geometry import transform_points
+from planeslam.core.geometry import invert_pose, transform_points
 from planeslam.tracking.config import PointConfig
 from planeslam.tracking.hypotheses import rotation_kabsch
 
@@ -200,6 +200,56 @@ def match_descriptors(query: np.ndarray, train: np.ndarray, ratio: float) -> np.
     return pairs[first][:, :2].astype(np.int64)
 
 
+def guided_pairs(
+    keypoints: Keypoints,
+    ref: Keypoints,
+    T_cam_ref: np.ndarray,
+    camera: CameraConfig,
+    cfg: PointConfig,
+) -> np.ndarray:
+    """(M, 2) (keypoints row, ref row) pairs found by projection (ORB-SLAM's search by
+    projection): each ref point (ref camera frame), moved by T_cam_ref (4, 4), is projected
+    into the frame and matched with the frame keypoint of nearest descriptor within
+    `guided_radius_px` of it (0: none), when that passes Lowe's ratio test against the
+    other keypoints there and lies within `vote_max_distance` bits; a frame keypoint is
+    used once (the nearest descriptor). Keypoint pixels are the colour image's,
+    unrectified: the radius absorbs a lens's few pixels as well as the pose's error."""
+    from scipy.spatial import cKDTree
+
+    if not len(keypoints) or not len(ref) or cfg.guided_radius_px <= 0:
+        return np.zeros((0, 2), np.int64)
+    p = transform_points(T_cam_ref, ref.points_cam)
+    front = np.flatnonzero(p[:, 2] > 0.1)
+    uv = np.column_stack(
+        [
+            camera.fx * p[front, 0] / p[front, 2] + camera.cx,
+            camera.fy * p[front, 1] / p[front, 2] + camera.cy,
+        ]
+    )
+    k = min(8, len(keypoints))
+    _, near = cKDTree(keypoints.pixels).query(uv, k=k, distance_upper_bound=cfg.guided_radius_px)
+    near = near.reshape(len(front), k)
+    found = near < len(keypoints)  # missing neighbours come back as len(keypoints)
+    safe = np.where(found, near, 0)
+    xor = keypoints.descriptors[safe] ^ ref.descriptors[front][:, None, :]
+    bits = _POPCOUNT[xor].sum(axis=2, dtype=np.int64)
+    none = np.full((len(front), 1), 1 << 16)  # a second candidate where there is one only
+    bits = np.hstack([np.where(found, bits, none), none])
+    order = np.argsort(bits, axis=1, kind="stable")
+    best, second = np.take_along_axis(bits, order[:, :2], axis=1).T
+    ok = (best <= cfg.vote_max_distance) & (best < cfg.match_ratio * second)
+    nearest = np.take_along_axis(safe, np.minimum(order[:, :1], k - 1), axis=1)[:, 0]
+    rows = np.column_stack([nearest, front, best])[ok]
+    # Mutual: for every frame keypoint keep the ref point of the nearest descriptor.
+    rows = rows[np.lexsort((rows[:, 2], rows[:, 0]))]
+    first = np.r_[True, rows[1:, 0] != rows[:-1, 0]] if len(rows) else np.zeros(0, bool)
+    return rows[first][:, :2].astype(np.int64)
+
+
+_POPCOUNT = np.array([bin(b).count("1") for b in range(256)], dtype=np.uint8)
+"""Set bits of each byte value (Hamming distances of ORB descriptors)."""
+
+
 @dataclass
 class _Keyframe:
     index: int
@@ -265,17 +315,26 @@ class KeypointMap:
         usable = [i for i, kf in self._keyframes.items() if kf.keypoints or kf.images]
         return usable[-count:]
 
-    def matches(self, keypoints: Keypoints, indices: list[int]) -> PointMatches:
+    def matches(
+        self, keypoints: Keypoints, indices: list[int], T_guide: np.ndarray | None = None
+    ) -> PointMatches:
         """Matches of `keypoints` with the keyframes `indices` (each matched on its own, so
-        a point seen by several keyframes matches each), world frame."""
-        ratio = self.detector.config.match_ratio
+        a point seen by several keyframes matches each), world frame. With a pose T_guide
+        (4, 4) T_world_cam, also the matches by projection under it (`guided_pairs`): a
+        repetitive texture's nearest descriptors may lie a period away; under a pose near
+        the truth, projection finds the copy there."""
+        cfg = self.detector.config
         parts = []
         for index in indices:
             kf = self._keyframes[index]
             ref = self._keypoints(kf)
             if ref is None or not len(ref):
                 continue
-            pairs = match_descriptors(keypoints.descriptors, ref.descriptors, ratio)
+            pairs = match_descriptors(keypoints.descriptors, ref.descriptors, cfg.match_ratio)
+            if T_guide is not None:
+                T_cam_ref = invert_pose(T_guide) @ kf.T_world_cam
+                guided = guided_pairs(keypoints, ref, T_cam_ref, self.detector.camera, cfg)
+                pairs = np.unique(np.concatenate([pairs, guided]), axis=0)
             if not len(pairs):
                 continue
             rows = pairs[:, 1]

@@ -11,7 +11,7 @@ path that gives a pose its evidence supports:
    RANSAC's pose and the prediction; taken near the prediction, or at a plausible motion
    (`motion.plausible`) with enough points or planes; after a loss, on points only.
    A rival nearer the prediction beats the best-supported pose (a repetitive texture
-   agrees with poses a period apart).
+   agrees with poses a period apart: `periodic` adds those copies, matched by projection).
 3. `odometry` / `icp` (`dense`, right after a tracked frame only): RGB-D odometry, then
    ICP, against the previous frame, each accepted by its own overlap and colours (a plane
    pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`), started
@@ -264,11 +264,12 @@ class Tracker:
                 reasons[0] += " with a weakly fixed translation the keypoints do not confirm"
         # 2. One estimate over every primitive, from every start that needs no plane prior.
         keypoints = points.get()
-        matches = PointMatches.empty()
+        matches, match_at = PointMatches.empty(), None
         starts = [] if good is None else [good.T]
         if keypoints is not None and self.keypoint_map is not None and len(keypoints):
             recent = self.keypoint_map.recent(cfg.points.recent_keyframes)
             matches = self.keypoint_map.matches(keypoints, recent)
+            match_at = partial(self.keypoint_map.matches, keypoints, recent)
             found_T = self.joint.point_pose(keypoints, matches)
             if found_T is not None:
                 starts.append(found_T)
@@ -285,6 +286,7 @@ class Tracker:
             self.prediction_valid,
             T_from,
             frame_gap_s,
+            match_at,
         )
         if best is not None:
             return self._result(
