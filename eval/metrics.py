@@ -76,9 +76,7 @@ class RunMetrics:
     pose_glitches: dict[str, Any] = field(default_factory=dict)
     """Poses of trajectory.txt that jump away from the frames around them and back
     (`planeslam.tracking.glitches.PoseGlitches`: count, judged, timestamps and the
-    thresholds) and, for a SLAM run, those its end settled (`tracking.settle_glitches`:
-    found, found_timestamps, re_estimated, left_out, the latter counted as lost); empty for
-    methods without a trajectory."""
+    thresholds); empty for methods without a trajectory."""
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -121,7 +119,6 @@ def run_metrics(
     map_counts: Mapping[str, int] | None = None,
     tracked_fraction: float | None = None,
     pose_glitches: PoseGlitches | None = None,
-    settled_glitches: Mapping[str, Any] | None = None,
 ) -> RunMetrics:
     """Build RunMetrics from a run's counts and timings.
 
@@ -157,10 +154,7 @@ def run_metrics(
         map_bytes_breakdown={k: int(v) for k, v in (map_bytes_breakdown or {}).items()},
         final_poses=dict(final_poses or {}),
         backend=dict(backend or {}),
-        pose_glitches={
-            **({} if pose_glitches is None else pose_glitches.to_dict()),
-            **(settled_glitches or {}),
-        },
+        pose_glitches={} if pose_glitches is None else pose_glitches.to_dict(),
     )
 
 
@@ -185,7 +179,6 @@ def slam_run_metrics(slam: SLAM, summary: RunSummary | None) -> RunMetrics:
         final_poses=slam.final_poses,
         tracked_fraction=slam.tracked_frames / slam.frames if slam.frames else None,
         pose_glitches=slam.pose_glitches(),
-        settled_glitches=slam.settled_glitches,
     )
     if summary is None:
         return run_metrics(frames=slam.frames, seconds=0.0, **common)

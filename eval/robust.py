@@ -41,6 +41,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from planeslam.config import resolve_config
+from planeslam.core.bounded_parse import MAX_JSON_BYTES, load_json, read_text
 from planeslam.core.config import ConfigLayer
 from planeslam.core.errors import ConfigError, EvaluationError
 from planeslam.core.geometry import invert_pose
@@ -563,6 +564,55 @@ def summary_markdown(rows: Sequence[RobustRow]) -> str:
         ]
         parts.append(f"**{split} set**\n\n" + "\n".join([head, rule, *body]))
     return "\n\n".join(parts) + "\n"
+
+
+def read_rows(path: str | Path) -> list[RobustRow]:
+    """The rows of an earlier run: its output folder or its rows.jsonl. ConfigError (one
+    line, naming the file) when it is missing, unreadable or a line is not a row."""
+    file = Path(path)
+    if file.is_dir():
+        file = file / "rows.jsonl"
+    text = read_text(file, ConfigError, MAX_JSON_BYTES, "bench robust rows.jsonl")
+    rows = []
+    for number, line in enumerate(text.splitlines(), 1):
+        if line.strip():
+            data = load_json(line, f"{file}:{number}", ConfigError)
+            try:
+                rows.append(RobustRow.from_dict(data))
+            except (TypeError, KeyError, AttributeError) as exc:
+                raise ConfigError(f"{file}:{number}: not a bench robust row ({exc})") from None
+    return rows
+
+
+def changes_markdown(before: Sequence[RobustRow], after: Sequence[RobustRow]) -> str:
+    """planeslam's figures of `after` against `before` on the sequences both ran: per set
+    the sequences that pass, then each sequence whose tracked fraction (by 0.1 %), ATE (by
+    0.01 cm), largest false jump or object size error (by 0.1 cm) moved."""
+    earlier = {r.name: r for r in before}
+    shared = [r for r in after if r.name in earlier]
+    lines = []
+    for split in ("tuning", "validation"):
+        pairs = [(earlier[r.name].planeslam, r.planeslam) for r in shared if r.split == split]
+        if pairs:
+            passed = sum(b.passed for b, _ in pairs), sum(a.passed for _, a in pairs)
+            lines.append(f"- {split} set: {passed[0]} -> {passed[1]} of {len(pairs)} pass")
+    head = "| sequence | set | tracked | ATE [cm] | false jump [cm] | object size err [cm] | pass |"
+    body = []
+    for r in shared:
+        b, a = earlier[r.name].planeslam, r.planeslam
+        figures = [
+            (b.tracked_fraction, a.tracked_fraction, ".1%", 1.0),
+            (b.ate_m, a.ate_m, ".2f", 100.0),
+            (b.false_jump_m, a.false_jump_m, ".1f", 100.0),
+            (b.object_size_error_m, a.object_size_error_m, ".1f", 100.0),
+        ]
+        cells = [f"{_fmt(x, s, k)} -> {_fmt(y, s, k)}" for x, y, s, k in figures]
+        if all(_fmt(x, s, k) == _fmt(y, s, k) for x, y, s, k in figures):
+            continue
+        verdict = f"{'yes' if b.passed else 'no'} -> {'yes' if a.passed else 'no'}"
+        body.append(f"| {r.name} | {r.split} | " + " | ".join(cells) + f" | {verdict} |")
+    table = [head, "|" + "---|" * 7, *body] if body else ["No sequence's figures moved."]
+    return "\n".join(lines) + "\n\n" + "\n".join(table) + "\n"
 
 
 def rows_markdown(rows: Sequence[RobustRow]) -> str:

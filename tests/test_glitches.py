@@ -101,32 +101,3 @@ def test_evaluation_marks_the_glitches_it_finds(tmp_path) -> None:
     run = evaluate_to_folder(gt_path, est_path)
     assert run.evaluation.ate_max_m == pytest.approx(0.10, abs=0.01)  # the glitch's error
     assert (tmp_path / "run" / "ate_over_time.png").stat().st_size > 0
-
-
-def test_a_glitch_is_re_estimated_from_its_neighbours_path_only_where_its_terms_agree() -> None:
-    """A frame 10 cm off the path of a 30 Hz trajectory, in a room of four planes: its own
-    planes, seen from where it really was, bring it back onto the path; planes that were
-    seen from the glitched pose (the frame's own error) or none leave it out."""
-    from test_final_poses import ROOM, SETTINGS, T_TRUE, _scene
-
-    from planeslam.tracking.estimator import ConstraintThresholds
-    from planeslam.tracking.glitches import reestimate_glitches
-
-    poses = np.tile(T_TRUE, (9, 1, 1))
-    poses[:, 0, 3] += 0.01 * np.arange(9)  # 1 cm per frame
-    truth = poses[4].copy()
-    poses[4, 1, 3] += 0.10
-    trajectory = Trajectory(np.arange(9) / 30.0, poses)
-    found = find_pose_glitches(trajectory)
-    assert found.rows.tolist() == [4]
-    view, seen_there = _scene(truth, *ROOM)
-    _, seen_glitched = _scene(poses[4], *ROOM)
-
-    def settle(terms):
-        return reestimate_glitches(
-            trajectory, [4], terms, view, SETTINGS, ConstraintThresholds(), 0.02, 0.2, 0.05, 3.0
-        )
-
-    [(row, T)] = settle({4: seen_there}).items()
-    assert row == 4 and np.allclose(T, truth, atol=1e-5)
-    assert settle({4: seen_glitched}) == {} and settle({}) == {}

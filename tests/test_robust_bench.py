@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 import re
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,10 @@ from planeslam.eval.robust import (
     MethodFigures,
     RobustRow,
     benchmark_sequences,
+    changes_markdown,
     false_jump_m,
     method_figures,
+    read_rows,
     run_sequence,
     summaries,
     summary_markdown,
@@ -275,6 +278,60 @@ def test_summaries_count_passes_and_wins_per_set_and_kind() -> None:
     text = summary_markdown(rows)
     assert "**tuning set**" in text and "**validation set**" in text
     assert RobustRow.from_dict(json.loads(json.dumps(rows[2].to_dict()))) == rows[2]
+
+
+def test_an_earlier_run_is_read_back_and_what_moved_is_listed(tmp_path: Path) -> None:
+    good = MethodFigures(1.0, 0.01, 0.02, 0, 0, None, 20.0)
+    o3d = MethodFigures(1.0, 0.015, 0.01, 0, 0, None, 30.0)
+    before = [
+        _row("steady", "validation", good, o3d),
+        _row("worse", "validation", good, o3d),
+        _row("better", "tuning", MethodFigures(0.9, 0.05, 0.3), o3d),
+        _row("gone", "tuning", good, o3d),
+    ]
+    (tmp_path / "rows.jsonl").write_text(
+        "".join(json.dumps(r.to_dict()) + "\n" for r in before), encoding="utf-8"
+    )
+    assert read_rows(tmp_path) == before  # the folder or the file itself
+    after = [
+        _row("steady", "validation", MethodFigures(1.0, 0.010001, 0.02), o3d),  # rounds equal
+        _row("worse", "validation", MethodFigures(0.97, 0.03, 0.02), o3d),
+        _row("better", "tuning", good, o3d),
+        _row("new", "tuning", good, o3d),  # not in the earlier run: not compared
+    ]
+    sized = [_row("box", "validation", replace(good, object_size_error_m=0.003), o3d)]
+    resized = [_row("box", "validation", replace(good, object_size_error_m=0.27), o3d)]
+    assert "| box | validation | 100.0% -> 100.0% | 1.00 -> 1.00 | 2.0 -> 2.0 | 0.3 -> 27.0 |" in (
+        changes_markdown(sized, resized)
+    )
+    text = changes_markdown(read_rows(tmp_path / "rows.jsonl"), after)
+    assert "- tuning set: 0 -> 1 of 1 pass" in text
+    assert "- validation set: 2 -> 1 of 2 pass" in text
+    worse = "| worse | validation | 100.0% -> 97.0% | 1.00 -> 3.00 | 2.0 -> 2.0 | - -> - | yes"
+    better = "| better | tuning | 90.0% -> 100.0% | 5.00 -> 1.00 | 30.0 -> 2.0 | - -> - | no -> yes"
+    assert worse in text and better in text
+    assert "steady" not in text and "new" not in text and "gone" not in text
+    assert "No sequence's figures moved." in changes_markdown(before, before)
+
+
+def test_an_earlier_run_that_cannot_be_read_is_a_one_line_error(tmp_path: Path) -> None:
+    from planeslam.app.bench_robust import run_robust_command
+
+    with pytest.raises(ConfigError, match=r"rows\.jsonl.*not found"):
+        read_rows(tmp_path / "nowhere")
+    rows = tmp_path / "rows.jsonl"
+    rows.write_text(
+        json.dumps(_row("a", "tuning", MethodFigures(), MethodFigures()).to_dict())
+        + '\n{"name": 1}\n',
+        encoding="utf-8",
+    )
+    with pytest.raises(ConfigError, match=r"rows\.jsonl:2: not a bench robust row"):
+        read_rows(rows)
+    rows.write_text("[1,\n", encoding="utf-8")
+    with pytest.raises(ConfigError, match=r"rows\.jsonl:1: not JSON"):
+        read_rows(tmp_path)
+    with pytest.raises(ConfigError, match="the run's own --out"):  # before anything runs
+        run_robust_command(tmp_path, "cmd", against=tmp_path, sequences=[])
 
 
 def test_a_section_is_replaced_not_repeated() -> None:

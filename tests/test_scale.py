@@ -283,7 +283,7 @@ def test_revisit_offsets_compare_each_image_with_its_first_pass_pose() -> None:
 
 def test_glitches_are_counted_by_pass() -> None:
     """Three passes of 20 frames at 30 Hz along a line; one pose of the second pass jumps
-    8 cm off and back. Counted from what the run's end found, or from its trajectory."""
+    8 cm off and back, counted from the run's final trajectory."""
     from types import SimpleNamespace
 
     from planeslam.app.bench_long import _glitches_per_pass
@@ -295,10 +295,8 @@ def test_glitches_are_counted_by_pass() -> None:
     poses[30, 1, 3] += 0.08
     timestamps = np.arange(len(order)) / 30.0
     found = find_pose_glitches(Trajectory(timestamps, poses))
-    settled = SimpleNamespace(settled_glitches={"found_timestamps": found.timestamps.tolist()})
-    assert _glitches_per_pass(settled, timestamps, frames_per_pass=20) == [0, 1, 0]
-    unsettled = SimpleNamespace(settled_glitches={}, pose_glitches=lambda: found)
-    assert _glitches_per_pass(unsettled, timestamps, frames_per_pass=20) == [0, 1, 0]
+    finished = SimpleNamespace(pose_glitches=lambda: found)
+    assert _glitches_per_pass(finished, timestamps, frames_per_pass=20) == [0, 1, 0]
 
 
 def confident(plane):

@@ -297,7 +297,7 @@ def test_two_planes_and_an_edge_give_the_pose(rng: np.random.Generator) -> None:
     gate = np.radians(10.0)
     assert not len(hypotheses.corner_hypotheses(frame, view, gate))
     assert not len(hypotheses.triple_hypotheses(frame, view, gate, 10, 24))
-    found = hypotheses.edge_hypotheses(frame, view, gate, 1.2)
+    found = hypotheses.edge_hypotheses(frame, view, gate)
     errors = [
         np.linalg.norm(h[:3, 3] - T[:3, 3]) + np.linalg.norm(h[:3, :3] - T[:3, :3]) for h in found
     ]

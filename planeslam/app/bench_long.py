@@ -135,8 +135,7 @@ class LongRunResult:
     """Per pass after the first: median translation [m] and rotation [deg] between a frame's
     estimated pose and the first pass's estimate of the same image (`revisit_offsets`)."""
     glitches_per_pass: list[int] = field(default_factory=list)
-    """Pose glitches (`planeslam.tracking.glitches`) in each pass, as the run's end found
-    them (`tracking.settle_glitches`)."""
+    """Pose glitches (`planeslam.tracking.glitches`) of the final trajectory in each pass."""
 
     @property
     def fps(self) -> float:
@@ -313,12 +312,10 @@ def _ate_per_pass(
 
 
 def _glitches_per_pass(slam: SLAM, timestamps: np.ndarray, frames_per_pass: int) -> list[int]:
-    """The finished `slam`'s pose glitches counted by pass (`_pass_of`): those its end found
-    (`tracking.settle_glitches`), or with that off those of its trajectory."""
+    """The finished `slam`'s pose glitches (those of its final trajectory) counted by pass
+    (`_pass_of`)."""
     passes = (len(timestamps) - 1) // frames_per_pass if frames_per_pass else 0
-    stamps = slam.settled_glitches.get("found_timestamps")
-    if stamps is None:
-        stamps = slam.pose_glitches().timestamps
+    stamps = slam.pose_glitches().timestamps
     found = _pass_of(np.asarray(stamps, dtype=np.float64), timestamps, frames_per_pass)
     return [int(np.count_nonzero(found == p)) for p in range(max(passes, 1))]
 

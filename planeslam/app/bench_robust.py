@@ -24,6 +24,8 @@ from planeslam.eval.robust import (
     RobustResult,
     RobustRow,
     benchmark_sequences,
+    changes_markdown,
+    read_rows,
     rows_markdown,
     run_robust,
     summary_markdown,
@@ -84,13 +86,16 @@ def robust_section(
     result: RobustResult,
     context: BenchContext,
     reference_after_s: float | None = None,
+    changes: str = "",
 ) -> str:
-    """The Markdown section of one benchmark run: heading, summaries, per-sequence rows."""
+    """The Markdown section of one benchmark run: heading, summaries, the `changes`
+    against an earlier run (`changes_markdown`, when given), per-sequence rows."""
     return (
         f"### Robust benchmark: {label}\n\n"
         + context.heading_lines(result.seconds, reference_after_s)
         + f"{result.jobs} job(s) at once on the {result.executor} executor.\n\n"
         + summary_markdown(result.rows)
+        + (f"\n**Against the earlier run**\n\n{changes}" if changes else "")
         + "\n<details><summary>Per sequence</summary>\n\n"
         + rows_markdown(result.rows)
         + "\n</details>\n"
@@ -111,12 +116,20 @@ def run_robust_command(
     with_open3d: bool = True,
     progress: bool = False,
     sequences: Sequence[BenchSequence] | None = None,
+    against: Path | None = None,
 ) -> str:
     """Run the benchmark (`sequences`, default the fixed list or its first `count`), write
     robust.md into `out_dir` (and the section `label` of `markdown`), and return the
-    summary tables."""
+    summary tables; with `against` (an earlier run's folder or rows.jsonl, read before
+    anything runs) also what moved since that run (`changes_markdown`)."""
     if "-->" in label or "\n" in label:
         raise ConfigError(f"--label {label!r}: use one line without '-->'")
+    if against is not None and Path(against).resolve() in (
+        Path(out_dir).resolve(),
+        (Path(out_dir) / "rows.jsonl").resolve(),
+    ):
+        raise ConfigError(f"--against {against}: the run's own --out, which it overwrites")
+    earlier = None if against is None else read_rows(against)
     if sequences is None:
         sequences = benchmark_sequences() if count is None else benchmark_sequences(count)
     if split != "all":
@@ -139,9 +152,16 @@ def run_robust_command(
             with_open3d=with_open3d,
             on_row=on_row,
         )
-    section = robust_section(label, result, context, reference_workload())
+    changes = "" if earlier is None else changes_markdown(earlier, result.rows)
+    section = robust_section(label, result, context, reference_workload(), changes)
     written = [write_text_atomic(Path(out_dir) / "robust.md", section + "\n")]
     if markdown is not None:
         page = markdown.read_text(encoding="utf-8") if markdown.is_file() else "# Benchmarks\n"
         written.append(write_text_atomic(markdown, replace_section(page, label, section)))
-    return summary_markdown(result.rows) + "\nwritten: " + ", ".join(str(p) for p in written)
+    compared = f"\nAgainst {against}:\n{changes}" if changes else ""
+    return (
+        summary_markdown(result.rows)
+        + compared
+        + "\nwritten: "
+        + ", ".join(str(p) for p in written)
+    )

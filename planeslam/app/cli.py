@@ -387,6 +387,15 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
     robust.add_argument(
         "--no-open3d", action="store_true", help="skip the Open3D odometry baseline"
     )
+    robust.add_argument(
+        "--against",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="an earlier run's output folder (or its rows.jsonl): also print and write "
+        "each set's pass count before and after and every sequence whose figures moved "
+        "(judge a change or a --set by the validation set, run before and after)",
+    )
     add_override_option(robust)
     robust.set_defaults(func=_cmd_bench_robust)
 
@@ -482,6 +491,7 @@ def _cmd_bench_robust(args: argparse.Namespace) -> int:
             label=args.label,
             with_open3d=not args.no_open3d,
             progress=not args.quiet,
+            against=args.against,
         )
     )
     return 0

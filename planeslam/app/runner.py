@@ -119,13 +119,6 @@ class RunResult:
             )
             lines.append(f"ATE RMSE {ev.ate_rmse_m:.4f} m, {rpe} over {ev.pairs} poses{tracked}")
         glitches = m.pose_glitches
-        if glitches.get("found"):
-            lines.append(
-                f"pose glitches (poses over {100 * glitches['min_jump_m']:.0f} cm / "
-                f"{glitches['min_jump_deg']:.0f} deg off the frames around them and back): "
-                f"{glitches['found']} at the end, {glitches['re_estimated']} re-estimated "
-                f"from their neighbours' path, {glitches['left_out']} left out as lost"
-            )
         if glitches.get("count"):
             shown = ", ".join(f"{t:.2f}" for t in glitches["timestamps"][:8])
             more = " ..." if glitches["count"] > 8 else ""

@@ -7,9 +7,8 @@ before rather than the last one), and the last keyframe for a lost frame. A keyf
 two poses: online (as tracked, then as its own backend update optimised it) and final
 (after the last optimisation; the online one until then). A frame's final pose is its
 anchor's final pose @ T_anchor_cam; at the end, the frames between keyframes are
-re-estimated against the final map (`final_poses`) and their glitches settled
-(`glitches`). Poses are T_world_cam (4, 4) [m]; frames are indexed 0, 1, ... in the order
-they were processed.
+re-estimated against the final map (`final_poses`). Poses are T_world_cam (4, 4) [m];
+frames are indexed 0, 1, ... in the order they were processed.
 """
 
 from __future__ import annotations
@@ -18,7 +17,6 @@ import logging
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
@@ -29,7 +27,7 @@ from planeslam.io.trajectory import Trajectory
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import ConstraintThresholds, EstimatorSettings
 from planeslam.tracking.final_poses import FrameTerms, final_poses
-from planeslam.tracking.glitches import PoseGlitches, find_pose_glitches, reestimate_glitches
+from planeslam.tracking.glitches import PoseGlitches, find_pose_glitches
 from planeslam.tracking.views import MapView
 
 logger = logging.getLogger(__name__)
@@ -46,7 +44,7 @@ class FinalMap:
     thresholds: ConstraintThresholds
     """When a direction counts as fixed (`Tracker.thresholds`)."""
     config: TrackingConfig
-    """`final_poses`, `settle_glitches`, the corner noise and the step and jump limits."""
+    """`final_poses` and the corner noise."""
 
 
 class AnchoredPoses:
@@ -221,24 +219,13 @@ class AnchoredPoses:
             config.fast_max_jump_deg,
         )
 
-    def settle(self, final: FinalMap) -> tuple[dict[str, float], dict[str, Any]]:
-        """After the final optimisation (`set_final`), against `final`: the frames between
-        keyframes re-estimated (`tracking.final_poses`), then the trajectory's glitches
-        settled (`tracking.settle_glitches`). Returns the two summaries ({} when off)."""
-        terms, self._terms = self._terms, {}
-        reestimated: dict[str, float] = {}
-        settled: dict[str, Any] = {}
-        if final.config.final_poses:
-            reestimated = self._reestimate(terms, final)
-        if final.config.settle_glitches:
-            settled = self._settle_glitches(terms, final)
-        return reestimated, settled
-
-    def _reestimate(self, terms: Mapping[int, FrameTerms], final: FinalMap) -> dict[str, float]:
-        """Each frame with `terms` re-estimated against the final map; a frame the map does
-        not fix keeps its anchored pose. Returns the counts ('reestimated', 'kept') and the
+    def reestimate(self, final: FinalMap) -> dict[str, float]:
+        """After the final optimisation (`set_final`): each frame between keyframes
+        re-estimated against `final` (`tracking.final_poses`); a frame the map does not fix
+        keeps its anchored pose. Returns the counts ('reestimated', 'kept') and the
         wall-clock 'ms'."""
         start = time.perf_counter()
+        terms, self._terms = self._terms, {}
         frames = {k: (frame_terms, self.final_pose(k)) for k, frame_terms in terms.items()}
         config = final.config
         found = final_poses(
@@ -247,8 +234,6 @@ class AnchoredPoses:
             final.settings,
             final.thresholds,
             config.sigma_point_m,
-            config.final_max_step_m,
-            config.final_max_step_deg,
         )
         for k, T_world_cam in found.items():
             self.set_final_pose(k, T_world_cam)
@@ -264,43 +249,3 @@ class AnchoredPoses:
             summary["ms"],
         )
         return summary
-
-    def _settle_glitches(self, terms: Mapping[int, FrameTerms], final: FinalMap) -> dict[str, Any]:
-        """The final trajectory's pose glitches: each frame with `terms` that they fix from
-        the pose its good neighbours put it at takes that estimate; the others are left out
-        as lost. Returns the glitches 'found' (and their 'found_timestamps' [s]), those
-        're_estimated' and those 'left_out'."""
-        config = final.config
-        trajectory = self.trajectory()
-        found = self.glitches(config, trajectory)
-        frames = [k for k, tracked in enumerate(self._tracked) if tracked]  # row -> frame
-        poses = reestimate_glitches(
-            trajectory,
-            found.rows.tolist(),
-            {int(r): terms[frames[r]] for r in found.rows if frames[r] in terms},
-            final.view,
-            final.settings,
-            final.thresholds,
-            config.sigma_point_m,
-            found.max_span_s,
-            config.fast_max_jump_m,
-            config.fast_max_jump_deg,
-        )
-        for row in found.rows.tolist():
-            if row in poses:
-                self.set_final_pose(frames[row], poses[row])
-            else:
-                self._tracked[frames[row]] = False
-        if len(found):
-            logger.info(
-                "final trajectory: %d pose glitches, %d re-estimated, %d left out",
-                len(found),
-                len(poses),
-                len(found) - len(poses),
-            )
-        return {
-            "found": len(found),
-            "found_timestamps": [round(float(t), 6) for t in found.timestamps],
-            "re_estimated": len(poses),
-            "left_out": len(found) - len(poses),
-        }

@@ -143,10 +143,6 @@ class SLAM:
         self.final_poses: dict[str, float] = {}
         """After `finish`: frames between keyframes re-estimated against the final map
         ('reestimated'), left at their anchored pose ('kept') and the wall-clock 'ms'."""
-        self.settled_glitches: dict[str, Any] = {}
-        """After `finish` (`tracking.settle_glitches`): the final trajectory's pose glitches
-        ('found', their 'found_timestamps' [s]), those re-estimated from their neighbours'
-        path ('re_estimated') and those left out as lost ('left_out')."""
         self.backend_result: BackendResult | None = None
         """What the backend reported at `finish`: update times, failures, factors."""
         self.pointcloud_bytes = 0
@@ -650,11 +646,11 @@ class SLAM:
         if not self.localize:
             self.map.apply_estimates(result.planes, result.corners)
         cfg = self.config.tracking
-        if cfg.final_poses or cfg.settle_glitches:
+        if cfg.final_poses:
             final = FinalMap(
                 self.map_view(), self.tracker.refine_settings, self.tracker.thresholds, cfg
             )
-            self.final_poses, self.settled_glitches = self.poses.settle(final)
+            self.final_poses = self.poses.reestimate(final)
         self.backend_result = result
         for dropped in self._dropped:  # said, not only counted among the lost frames
             logger.warning(

@@ -178,18 +178,6 @@ class TrackingConfig:
     from the planes and corners it was tracked with (`tracking.final_poses`), rather than
     carrying its tracked pose rigidly by its anchor keyframe's correction. Tracking, map and
     graph are unchanged; only trajectory.txt's final poses move."""
-    final_max_step_m: float = 0.2
-    """A re-estimate farther than this from the anchored pose is not taken (a wrong
-    association, not a correction) [m] (> 0) ..."""
-    final_max_step_deg: float = 10.0
-    """... or turned farther than this [deg] (> 0)."""
-    settle_glitches: bool = True
-    """When the run finishes, find the final trajectory's pose glitches (poses beyond
-    `fast_max_jump_*` off the path of the frames within 2 `fast_max_gap_s` around them and
-    back, `tracking.glitches`): each is estimated again from its own planes and corners
-    from the pose its good neighbours put it at, and kept within `fast_max_jump_*` of that
-    pose; the others are left out of trajectory.txt as lost frames are (metrics.json
-    `pose_glitches` counts both)."""
     relocalise: bool = True
     """Search the whole map (corner, plane-triple, edge and keypoint hypotheses) when
     nothing near the prediction fits."""
@@ -197,9 +185,6 @@ class TrackingConfig:
     """Largest observed planes that form plane-triple hypotheses when relocalising."""
     max_triple_map_planes: int = 24
     """Largest map planes that form plane-triple hypotheses when relocalising."""
-    edge_length_ratio: float = 1.2
-    """An observed edge pairs with map edges at least 1 / edge_length_ratio of its length
-    in edge hypotheses (map edges keep the longest length seen)."""
     relocalise_max_hypotheses: int = 2000
     """Plane-triple hypotheses at most (and an eighth as many edge pairings, which give up
     to 8 poses each) in a whole-map search: a box-shaped world matches every orthogonal
@@ -267,7 +252,6 @@ class TrackingConfig:
             "max_residual_angle_deg",
             "max_residual_offset_m",
             "size_gate_ratio",
-            "edge_length_ratio",
             "sigma_line_m",
             "line_gate_m",
             "huber_k",
@@ -280,8 +264,6 @@ class TrackingConfig:
             "fast_max_jump_deg",
             "refine_floor_deg",
             "refine_floor_m",
-            "final_max_step_m",
-            "final_max_step_deg",
             "max_sigma_deg",
             "max_sigma_m",
             "icp_voxel_m",

@@ -10,8 +10,7 @@ each such frame's pose is estimated again from the planes and corners it was tra
 depth error over its patch (`FrameView.plane_covariances`) plus `refine_floor_*`, from the
 anchored pose. A frame keeps the anchored pose when fewer than three of its planes are
 still in the map, when they leave a direction free, when the estimate leaves out a plane
-that the anchored pose fits (another solution, not a correction), or when it moves the
-frame beyond `final_max_step_*` (a wrong association).
+that the anchored pose fits (another solution, not a correction).
 """
 
 from __future__ import annotations
@@ -33,7 +32,6 @@ from planeslam.tracking.estimator import (
     estimate_pose,
     fully_constrained,
 )
-from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.views import FrameView, MapView
 
 
@@ -82,8 +80,6 @@ def final_poses(
     settings: EstimatorSettings,
     thresholds: ConstraintThresholds,
     sigma_point_m: float,
-    max_step_m: float,
-    max_step_deg: float,
 ) -> dict[int, np.ndarray]:
     """{frame: re-estimated T_world_cam (4, 4)} for the `frames` ({frame: (its terms, its
     anchored T_world_cam (4, 4))}) that the final map `view` (world frame) fixes (module
@@ -114,9 +110,7 @@ def final_poses(
             continue
         if _rejects_a_fitting_plane(estimate, T_init, planes, points, settings):
             continue
-        meters, degrees = pose_difference(T_init, estimate.T_world_cam)
-        if meters <= max_step_m and degrees <= max_step_deg:
-            found[index] = estimate.T_world_cam
+        found[index] = estimate.T_world_cam
     return found
 
 

@@ -1,5 +1,4 @@
-"""Pose glitches: poses that jump away from the frames around them and back, and how a
-run settles them.
+"""Pose glitches: poses that jump away from the frames around them and back.
 
 At video rate a hand-held or robot camera moves smoothly: over a fifth of a second its
 path departs from the straight line (and its orientation from the slerp) between the poses
@@ -12,27 +11,16 @@ neighbours one and two frames before and after them (the smallest departure coun
 glitch of one or two frames shows, and the frames next to it do not); poses without such
 neighbours within `max_span_s` (the ends, sub-sampled sequences, gaps of lost frames) are
 not judged.
-
-`reestimate_glitches` settles them at the end of a run (`SLAM.finish`,
-`tracking.settle_glitches`): a glitched frame between keyframes is estimated again from the
-planes and corners it was tracked with, against the final map, starting from the pose its
-nearest good neighbours put it at (`interpolated_poses`), and keeps that estimate when it
-stays within the glitch limits of that pose; the others are left out of the trajectory,
-as lost frames are.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from planeslam.io.trajectory import Trajectory
-from planeslam.tracking.estimator import ConstraintThresholds, EstimatorSettings
-from planeslam.tracking.final_poses import FrameTerms, final_poses
-from planeslam.tracking.views import MapView
 
 if TYPE_CHECKING:
     from scipy.spatial.transform import Rotation
@@ -142,20 +130,6 @@ def find_pose_glitches(
     )
 
 
-def interpolated_poses(T_a: np.ndarray, T_b: np.ndarray, share: np.ndarray) -> np.ndarray:
-    """(M, 4, 4) poses `share` (M,) in [0, 1] of the way from T_a to T_b (M, 4, 4): the
-    positions on the straight lines, the rotations on the slerps."""
-    from scipy.spatial.transform import Rotation
-
-    R_a = Rotation.from_matrix(T_a[:, :3, :3])
-    turn = (R_a.inv() * Rotation.from_matrix(T_b[:, :3, :3])).as_rotvec()
-    slerp, line = _slerp_and_line(R_a, turn, T_a[:, :3, 3], T_b[:, :3, 3], share)
-    T = np.tile(np.eye(4), (len(share), 1, 1))
-    T[:, :3, :3] = slerp.as_matrix()
-    T[:, :3, 3] = line
-    return T
-
-
 def _slerp_and_line(
     R_a: Rotation, turn: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, share: np.ndarray
 ) -> tuple[Rotation, np.ndarray]:
@@ -167,39 +141,4 @@ def _slerp_and_line(
     return slerp, (1.0 - share)[:, None] * p_a + share[:, None] * p_b
 
 
-def reestimate_glitches(
-    trajectory: Trajectory,
-    glitched_rows: Sequence[int],
-    terms: Mapping[int, FrameTerms],
-    view: MapView,
-    settings: EstimatorSettings,
-    thresholds: ConstraintThresholds,
-    sigma_point_m: float,
-    max_span_s: float,
-    max_step_m: float,
-    max_step_deg: float,
-) -> dict[int, np.ndarray]:
-    """{row: T_world_cam (4, 4)} for the glitched rows of `trajectory` that `terms` ({row:
-    the planes and corners it was tracked with}) fix against the final map `view` (world
-    frame) from the pose its nearest unglitched neighbours before and after (at most
-    `max_span_s` [s] apart) interpolate, within `max_step_m` [m] and `max_step_deg` [deg]
-    of it (`final_poses.final_poses`, with `settings`, `thresholds` and the corner noise
-    `sigma_point_m` [m]). The rows left out have no pose that their own terms support."""
-    stamps, poses = trajectory.timestamps, trajectory.T_world_cam
-    bad = set(int(r) for r in glitched_rows)
-    good = np.array([r for r in range(len(stamps)) if r not in bad], dtype=np.int64)
-    starts: dict[int, tuple[FrameTerms, np.ndarray]] = {}
-    for row in sorted(bad):
-        after = int(np.searchsorted(good, row))
-        if row not in terms or after == 0 or after == len(good):
-            continue
-        a, b = int(good[after - 1]), int(good[after])
-        span = float(stamps[b] - stamps[a])
-        if not 0 < span <= max_span_s:
-            continue
-        share = np.array([stamps[row] - stamps[a]]) / span
-        starts[row] = (terms[row], interpolated_poses(poses[[a]], poses[[b]], share)[0])
-    return final_poses(starts, view, settings, thresholds, sigma_point_m, max_step_m, max_step_deg)
-
-
-__all__ = ["PoseGlitches", "find_pose_glitches", "interpolated_poses", "reestimate_glitches"]
+__all__ = ["PoseGlitches", "find_pose_glitches"]

@@ -142,20 +142,18 @@ def edge_hypotheses(
     frame: FrameView,
     view: MapView,
     max_angle_rad: float,
-    max_length_ratio: float,
     limit: int | None = None,
 ) -> np.ndarray:
-    """(H, 4, 4) from each observed edge against each map edge of the same convexity, a
-    dihedral angle within the gate and a length at least 1 / max_length_ratio of the
-    observed one: rotation from the two normals (both pairings), translation across the
-    line from the offsets and along it from one observed end placed on either map end.
-    At most `limit` (observed edge, map edge) pairs (the longest map edges first)."""
+    """(H, 4, 4) from each observed edge against each map edge of the same convexity and a
+    dihedral angle within the gate: rotation from the two normals (both pairings),
+    translation across the line from the offsets and along it from one observed end placed
+    on either map end. At most `limit` (observed edge, map edge) pairs (the longest map
+    edges first)."""
     if not len(frame.edge_planes) or not len(view.edge_planes):
         return np.zeros((0, 4, 4))
     io, im = np.nonzero(
         (np.abs(frame.edge_angles[:, None] - view.edge_angles[None, :]) <= max_angle_rad)
         & (frame.edge_convex[:, None] == view.edge_convex[None, :])
-        & (frame.edge_lengths[:, None] <= max_length_ratio * view.edge_lengths[None, :])
     )
     order = np.argsort(-view.edge_lengths[im], kind="stable")[:limit]
     io, im = io[order], im[order]

@@ -63,9 +63,7 @@ def primitive_hypotheses(frame: FrameView, view: MapView, cfg: TrackingConfig) -
                 cfg.max_triple_map_planes,
                 cfg.relocalise_max_hypotheses,
             ),
-            hypotheses.edge_hypotheses(
-                frame, view, gate, cfg.edge_length_ratio, cfg.relocalise_max_hypotheses // 8
-            ),
+            hypotheses.edge_hypotheses(frame, view, gate, cfg.relocalise_max_hypotheses // 8),
         ]
     )
 
