@@ -600,15 +600,18 @@ def changes_markdown(before: Sequence[RobustRow], after: Sequence[RobustRow]) ->
     body = []
     for r in shared:
         b, a = earlier[r.name].planeslam, r.planeslam
-        figures = [
-            (b.tracked_fraction, a.tracked_fraction, ".1%", 1.0),
-            (b.ate_m, a.ate_m, ".2f", 100.0),
-            (b.false_jump_m, a.false_jump_m, ".1f", 100.0),
-            (b.object_size_error_m, a.object_size_error_m, ".1f", 100.0),
+        shown = [
+            (_fmt(x, spec, scale), _fmt(y, spec, scale))
+            for x, y, spec, scale in (
+                (b.tracked_fraction, a.tracked_fraction, ".1%", 1.0),
+                (b.ate_m, a.ate_m, ".2f", 100.0),
+                (b.false_jump_m, a.false_jump_m, ".1f", 100.0),
+                (b.object_size_error_m, a.object_size_error_m, ".1f", 100.0),
+            )
         ]
-        cells = [f"{_fmt(x, s, k)} -> {_fmt(y, s, k)}" for x, y, s, k in figures]
-        if all(_fmt(x, s, k) == _fmt(y, s, k) for x, y, s, k in figures):
+        if all(x == y for x, y in shown):
             continue
+        cells = [f"{x} -> {y}" for x, y in shown]
         verdict = f"{'yes' if b.passed else 'no'} -> {'yes' if a.passed else 'no'}"
         body.append(f"| {r.name} | {r.split} | " + " | ".join(cells) + f" | {verdict} |")
     table = [head, "|" + "---|" * 7, *body] if body else ["No sequence's figures moved."]

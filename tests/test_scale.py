@@ -294,9 +294,9 @@ def test_glitches_are_counted_by_pass() -> None:
     poses[:, 0, 3] = 0.01 * np.asarray(order)  # 1 cm per frame, back and forth
     poses[30, 1, 3] += 0.08
     timestamps = np.arange(len(order)) / 30.0
-    found = find_pose_glitches(Trajectory(timestamps, poses))
-    finished = SimpleNamespace(pose_glitches=lambda: found)
-    assert _glitches_per_pass(finished, timestamps, frames_per_pass=20) == [0, 1, 0]
+    estimate = Trajectory(timestamps, poses)
+    finished = SimpleNamespace(pose_glitches=find_pose_glitches)
+    assert _glitches_per_pass(finished, estimate, timestamps, frames_per_pass=20) == [0, 1, 0]
 
 
 def confident(plane):

@@ -290,7 +290,7 @@ def run_long(
         ate_per_pass_m=_ate_per_pass(evaluation, dataset.timestamps, frames_per_pass),
         seed=seed,
         revisit_offsets=revisit_offsets(estimate, dataset.timestamps, frames_per_pass),
-        glitches_per_pass=_glitches_per_pass(slam, dataset.timestamps, frames_per_pass),
+        glitches_per_pass=_glitches_per_pass(slam, estimate, dataset.timestamps, frames_per_pass),
     )
 
 
@@ -311,11 +311,13 @@ def _ate_per_pass(
     return [float(np.sqrt(np.mean(errors[passes == p] ** 2))) for p in np.unique(passes)]
 
 
-def _glitches_per_pass(slam: SLAM, timestamps: np.ndarray, frames_per_pass: int) -> list[int]:
-    """The finished `slam`'s pose glitches (those of its final trajectory) counted by pass
-    (`_pass_of`)."""
+def _glitches_per_pass(
+    slam: SLAM, estimate: Trajectory, timestamps: np.ndarray, frames_per_pass: int
+) -> list[int]:
+    """The pose glitches of the finished `slam`'s final trajectory `estimate` counted by
+    pass (`_pass_of`)."""
     passes = (len(timestamps) - 1) // frames_per_pass if frames_per_pass else 0
-    stamps = slam.pose_glitches().timestamps
+    stamps = slam.pose_glitches(estimate).timestamps
     found = _pass_of(np.asarray(stamps, dtype=np.float64), timestamps, frames_per_pass)
     return [int(np.count_nonzero(found == p)) for p in range(max(passes, 1))]
 

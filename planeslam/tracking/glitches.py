@@ -15,15 +15,12 @@ not judged.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from planeslam.io.trajectory import Trajectory
-
-if TYPE_CHECKING:
-    from scipy.spatial.transform import Rotation
 
 _ENDS = ((1, 1), (1, 2), (2, 1), (2, 2))
 """(frames before, frames after) a run of poses of the neighbours it is interpolated from."""
@@ -40,8 +37,6 @@ class PoseGlitches:
 
     timestamps: np.ndarray
     """(G,) timestamps [s] of the poses that jump."""
-    rows: np.ndarray = field(repr=False)
-    """(G,) their indices in the trajectory."""
     judged: int
     """Poses with neighbours on both sides within `max_span_s`."""
     max_span_s: float
@@ -101,14 +96,11 @@ def find_pose_glitches(
                     continue
                 least = np.full(len(i), np.inf)
                 turn = (rotations[a].inv() * rotations[b]).as_rotvec()
+                p_a, p_b = poses[a, :3, 3], poses[b, :3, 3]
                 for k, departs in enumerate(pattern):
-                    slerp, line = _slerp_and_line(
-                        rotations[a],
-                        turn,
-                        poses[a, :3, 3],
-                        poses[b, :3, 3],
-                        (stamps[i + k] - stamps[a]) / span,
-                    )
+                    share = ((stamps[i + k] - stamps[a]) / span)[:, None]  # of the way a -> b
+                    slerp = rotations[a] * Rotation.from_rotvec(share * turn)
+                    line = (1.0 - share) * p_a + share * p_b
                     offset = np.linalg.norm(poses[i + k, :3, 3] - line, axis=1)
                     angle = np.degrees((slerp.inv() * rotations[i + k]).magnitude())
                     away = np.maximum(offset / min_jump_m, angle / min_jump_deg)
@@ -122,23 +114,11 @@ def find_pose_glitches(
                     glitch[k:] |= flagged[: n - k]
     return PoseGlitches(
         timestamps=stamps[glitch],
-        rows=np.flatnonzero(glitch),
         judged=int(np.count_nonzero(judged)),
         max_span_s=float(max_span_s),
         min_jump_m=float(min_jump_m),
         min_jump_deg=float(min_jump_deg),
     )
-
-
-def _slerp_and_line(
-    R_a: Rotation, turn: np.ndarray, p_a: np.ndarray, p_b: np.ndarray, share: np.ndarray
-) -> tuple[Rotation, np.ndarray]:
-    """The rotations (M,) and positions (M, 3) `share` (M,) of the way from (R_a, p_a) to
-    (R_b, p_b), turn (M, 3) the rotation vector of R_a^-1 R_b: the slerps and the lines."""
-    from scipy.spatial.transform import Rotation
-
-    slerp = R_a * Rotation.from_rotvec(share[:, None] * turn)
-    return slerp, (1.0 - share)[:, None] * p_a + share[:, None] * p_b
 
 
 __all__ = ["PoseGlitches", "find_pose_glitches"]
