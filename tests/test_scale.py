@@ -16,6 +16,7 @@ from planeslam.app.bench_long import pass_order, replay_sequence
 from planeslam.backend.config import BackendConfig
 from planeslam.backend.keyframes import is_keyframe, nearest_keyframe
 from planeslam.core.geometry import convex_polygon_gap, pose_from_quat
+from planeslam.frontend.cloud import sampled_points
 from planeslam.io.dataset import TumDataset
 from planeslam.io.trajectory import Trajectory, read_tum
 from planeslam.mapping.config import MapConfig
@@ -116,6 +117,38 @@ def test_fused_cloud_counts_occupied_voxels(background: bool) -> None:
     shift[:3, 3] = [0.0, 0.2, 0.0]
     fused.add(points, shift)  # moved by a pose: 100 more
     assert fused.voxels == 300
+
+
+def test_fused_cloud_flushes_merge_like_one_count() -> None:
+    """Batches merged into the kept keys count what one pass over all points counts."""
+    rng = np.random.default_rng(3)
+    batches = [rng.integers(-40, 40, size=(rng.integers(1, 200), 3)) * 0.01 for _ in range(9)]
+    fused = FusedCloudSize(voxel_m=0.01, flush_every=3, background=False)
+    for batch in batches:
+        fused.add(batch + 0.005)
+    once = FusedCloudSize(voxel_m=0.01, background=False)
+    once.add(np.concatenate(batches) + 0.005)
+    assert fused.voxels == once.voxels == len(np.unique(np.concatenate(batches), axis=0))
+
+
+def test_sampled_keyframe_clouds_count_like_their_points() -> None:
+    """The compiled sampling (`add_sampled`) keys exactly the voxels `add` keys for the
+    same valid pixels, moved by the same pose: invalid depth and far points left out."""
+    rng = np.random.default_rng(5)
+    cloud = rng.uniform(-2.0, 2.0, size=(61, 83, 3)).astype(np.float32)
+    cloud[..., 2] = rng.uniform(-0.5, 4.0, size=(61, 83))  # some z <= 0: invalid
+    cloud[3, 4, 0] = np.nan
+    cloud[6, 8, 1] = np.inf
+    cloud[9, 10] = [1e5, 0.0, 1.0]  # beyond the keys' range at 1 cm
+    quat = np.array([0.1, 0.7, -0.2, 0.67])
+    T = pose_from_quat(np.array([0.3, -1.2, 0.8]), quat / np.linalg.norm(quat))
+    for stride in (1, 2, 3):
+        sampled = FusedCloudSize(voxel_m=0.01, background=False)
+        sampled.add_sampled(cloud, stride, T)
+        points = FusedCloudSize(voxel_m=0.01, background=False)
+        points.add(sampled_points(cloud, stride)[0], T)
+        assert sampled.voxels == points.voxels > 100
+        assert np.array_equal(sampled._keys, points._keys)
 
 
 def test_pass_order_turns_without_repeating_the_end() -> None:

@@ -1,6 +1,7 @@
 """Compiled (numba) loops of the front end's per-pixel work: back-projection, the
 organised segmentation's pixel assignment and the gathering of each plane's inliers,
-and the real intersections' search for edge points.
+the real intersections' search for edge points, and the voxel keys of a keyframe's
+sampled points (the fused-cloud figure, `mapping.sparse_cloud.FusedCloudSize`).
 
 Each kernel does in one pass over the pixels what numpy did in several passes and
 temporary arrays, with the same float32 operations in the same order (no fast-math,
@@ -8,7 +9,7 @@ so no fused multiply-adds the compiler chooses): the results are identical to th
 numpy code they replace, bit for bit. The one deliberate fused multiply-add is
 `_dot3`, which computes a 3-vector dot product as OpenBLAS's dgemm kernels do on
 every x86-64 CPU with FMA (Haswell and later, Zen): the intersections' `matrix @
-points` products, reproduced bit for bit without BLAS. Compiled once per machine
+points` products and the keyframe points' pose, reproduced bit for bit without BLAS. Compiled once per machine
 (`cache=True` keeps the machine code beside the module, or in numba's user cache when
 that is not writable).
 """
@@ -397,6 +398,43 @@ def _dot3(a0: float, a1: float, a2: float, x: float, y: float, z: float) -> floa
 
 
 @njit(cache=True, nogil=True)
+def sampled_voxel_keys_kernel(
+    cloud: np.ndarray, stride: int, T: np.ndarray, voxel_m: float, key_bits: int
+) -> np.ndarray:
+    """Packed voxel keys (N,) int64 of the valid points (z > 0, all finite) among every
+    `stride`-th pixel in each direction of the (H, W, 3) float32 camera-frame cloud [m],
+    moved to the world by T (4, 4): floor(p / voxel_m) per axis, each offset by
+    2^(key_bits - 1) and packed x, y, z from the high bits; points whose key reaches
+    beyond +-2^(key_bits - 1) are left out. Bit for bit what `sampled_points`,
+    `transform_points` (OpenBLAS's dgemm order, `_dot3`), floor and packing give."""
+    height, width = cloud.shape[0], cloud.shape[1]
+    offset = 1 << (key_bits - 1)
+    out = np.empty(((height + stride - 1) // stride) * ((width + stride - 1) // stride), np.int64)
+    n = 0
+    for v in range(0, height, stride):
+        for u in range(0, width, stride):
+            x, y, z = float(cloud[v, u, 0]), float(cloud[v, u, 1]), float(cloud[v, u, 2])
+            if not (z > 0.0 and np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                continue
+            packed = 0
+            inside = True
+            for r in range(3):
+                w = _dot3(T[r, 0], T[r, 1], T[r, 2], x, y, z) + T[r, 3]
+                if not np.isfinite(w):
+                    inside = False
+                    break
+                key = np.floor(w / voxel_m)
+                if not abs(key) < offset:
+                    inside = False
+                    break
+                packed = (packed << key_bits) | (int(key) + offset)
+            if inside:
+                out[n] = packed
+                n += 1
+    return out[:n]
+
+
+@njit(cache=True, nogil=True)
 def band_points_kernel(
     points: np.ndarray,
     stride: int,
@@ -626,5 +664,6 @@ def warm_up() -> None:
     contact_counts_kernel(np.zeros((2 * n, 2 * n), np.int32)[::2, ::2], 1)
     key, flag = np.arange(n, dtype=np.float64), np.ones(n, np.bool_)
     edge_extents_kernel(key, count - 1, key, key, flag, normal, vec, 1.0, 3, 1, 0.01, 0.0, 8)
+    sampled_voxel_keys_kernel(np.ones((n, n, 3), f32), 2, np.eye(4), 0.01, 21)  # fused cloud
     warm_up_plane_kernels()
     _WARM = True
