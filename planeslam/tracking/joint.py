@@ -283,8 +283,10 @@ class JointEstimator:
         T_last (4, 4), `frame_gap_s` seconds ago, reaches (`motion.plausible`) with at
         least `points.min_inliers` point matches or `relocalise_min_planes` inlier planes
         (a jump is not taken on one frame's evidence: aliased keypoints agree on wrong
-        poses too). After a loss: at least `points.min_inliers` point matches (planes alone
-        far from a prediction prove little: three of them always fit). While tracking, with
+        poses too); with those point matches, the fast path's correction on top of the
+        motion (`correction`: the last pose may have drifted, and the points correct it).
+        After a loss: at least `points.min_inliers` point matches (planes alone far from a
+        prediction prove little: three of them always fit). While tracking, with
         `match_at(T)` (matches by projection under a (4, 4) pose), copies of the best a
         texture period away join its rivals (`with_period_rivals`)."""
         cfg = self.config
@@ -299,12 +301,11 @@ class JointEstimator:
                 continue
             solved.append(candidate.T)
             if tracking:  # no jump on one frame's evidence
+                points = candidate.point_inliers >= cfg.points.min_inliers
                 corroborated = motion.near(cfg, candidate.T, T_pred) or (
-                    motion.plausible(cfg, candidate.T, T_last, frame_gap_s)
-                    and (
-                        candidate.point_inliers >= cfg.points.min_inliers
-                        or candidate.constraints.terms["planes"] >= cfg.relocalise_min_planes
-                    )
+                    (points or candidate.constraints.terms["planes"] >= cfg.relocalise_min_planes)
+                    # with the points' support, the last pose's drift may be corrected too
+                    and motion.plausible(cfg, candidate.T, T_last, frame_gap_s, correction=points)
                 )
             else:
                 corroborated = candidate.point_inliers >= cfg.points.min_inliers

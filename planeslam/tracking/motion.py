@@ -41,13 +41,23 @@ def near(
     return any(m <= cfg.fast_max_jump_m and d <= cfg.fast_max_jump_deg for m, d in jumps)
 
 
-def plausible(cfg: TrackingConfig, T: np.ndarray, T_last: np.ndarray | None, gap_s: float) -> bool:
+def plausible(
+    cfg: TrackingConfig,
+    T: np.ndarray,
+    T_last: np.ndarray | None,
+    gap_s: float,
+    correction: bool = False,
+) -> bool:
     """Whether a motion from T_last (4, 4) to T (4, 4) in `gap_s` seconds is one a
     hand-held or robot-borne camera makes: within the fast path's jump limit, or within
-    MAX_SPEED_M_S and MAX_TURN_DEG_S over the gap (True without a last pose or time)."""
+    MAX_SPEED_M_S and MAX_TURN_DEG_S over the gap (True without a last pose or time).
+    With `correction`, the fast path's correction (`fast_max_correction_*`) is allowed on
+    top: T is an estimate of this frame that may also correct the last pose's drift."""
     if T_last is None or not np.isfinite(gap_s):  # no last pose or time: no bound
         return True
     meters, degrees = pose_difference(T_last, T)
-    return meters <= max(cfg.fast_max_jump_m, MAX_SPEED_M_S * gap_s) and degrees <= max(
-        cfg.fast_max_jump_deg, MAX_TURN_DEG_S * gap_s
+    extra_m = cfg.fast_max_correction_m if correction else 0.0
+    extra_deg = cfg.fast_max_correction_deg if correction else 0.0
+    return meters <= max(cfg.fast_max_jump_m, MAX_SPEED_M_S * gap_s) + extra_m and (
+        degrees <= max(cfg.fast_max_jump_deg, MAX_TURN_DEG_S * gap_s) + extra_deg
     )
