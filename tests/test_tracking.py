@@ -480,22 +480,18 @@ def test_points_may_correct_the_last_pose_on_top_of_a_plausible_motion() -> None
     keypoints agreed, and `planeslam relocalise` fell from 94 to 89 of 100."""
     cfg = TrackingConfig()
     T_last = camera_pose()
-    for moved_m, turned_deg, with_points in [
-        (0.04, 2.0, True),
-        (0.04, 2.0, False),
-        (0.08, 0.0, True),
-        (0.0, 5.0, True),
+    for moved_m, turned_deg, with_points, plausible in [
+        (0.04, 2.0, False, True),  # within the jump limit
+        (0.04, 2.0, True, True),
+        (0.08, 0.0, False, False),  # beyond it, on the planes' word
+        (0.08, 0.0, True, True),  # within it plus the correction, on the points'
+        (0.0, 5.0, False, False),
+        (0.0, 5.0, True, True),
+        (0.12, 0.0, True, False),  # beyond both
+        (0.0, 7.0, True, False),
     ]:
         T = perturb(T_last, moved_m, turned_deg)
-        assert motion.plausible(cfg, T, T_last, 0.033, correction=with_points)
-    for moved_m, turned_deg, with_points in [
-        (0.08, 0.0, False),
-        (0.0, 5.0, False),
-        (0.12, 0.0, True),
-        (0.0, 7.0, True),
-    ]:
-        T = perturb(T_last, moved_m, turned_deg)
-        assert not motion.plausible(cfg, T, T_last, 0.033, correction=with_points)
+        assert motion.plausible(cfg, T, T_last, 0.033, correction=with_points) is plausible
 
 
 def test_a_close_frame_near_the_last_pose_takes_its_plane_pose(rng: np.random.Generator) -> None:

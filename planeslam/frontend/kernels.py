@@ -9,9 +9,9 @@ so no fused multiply-adds the compiler chooses): the results are identical to th
 numpy code they replace, bit for bit. The one deliberate fused multiply-add is
 `_dot3`, which computes a 3-vector dot product as OpenBLAS's dgemm kernels do on
 every x86-64 CPU with FMA (Haswell and later, Zen): the intersections' `matrix @
-points` products and the keyframe points' pose, reproduced bit for bit without BLAS. Compiled once per machine
-(`cache=True` keeps the machine code beside the module, or in numba's user cache when
-that is not writable).
+points` products and the keyframe points moved by their pose, reproduced bit for bit
+without BLAS. Compiled once per machine (`cache=True` keeps the machine code beside the
+module, or in numba's user cache when that is not writable).
 """
 
 from __future__ import annotations
