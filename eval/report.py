@@ -584,15 +584,24 @@ def evaluate_to_folder(
     the run's frames in ESTIMATE), the plots (ESTIMATE's pose glitches marked) and
     report.html into `out_dir` (default: the estimate's folder). A truth.json found there
     (not given) that cannot be used gives a warning in `EvaluationRun.warnings`, not an
-    error.
+    error; so does a ground truth whose positions admit no SE(3) alignment (a camera
+    turning in place), evaluated after aligning the first poses instead.
     """
     gt_path, est_path = Path(groundtruth), Path(estimate)
     out = Path(out_dir) if out_dir is not None else est_path.parent
-    evaluation = evaluate_trajectory(gt_path, est_path, max_time_difference_s, rpe_delta_s)
+    evaluation = evaluate_trajectory(
+        gt_path, est_path, max_time_difference_s, rpe_delta_s, origin_when_degenerate=True
+    )
     evaluation = dataclasses.replace(evaluation, tracked_fraction=tracked_fraction)
     truth = Path(truth_json) if truth_json is not None else gt_path.parent / "truth.json"
     objects = Path(map_json) if map_json is not None else est_path.parent / "map.json"
     warnings: list[str] = []
+    if evaluation.alignment == "origin":
+        warnings.append(
+            f"{gt_path}: the ground truth's positions admit no SE(3) alignment (a camera "
+            "turning in place?): ATE after aligning the first poses (evo's align_origin)"
+        )
+        log.warning("%s", warnings[-1])
     if truth.is_file() and objects.is_file():
         try:
             errors = object_size_errors_from_files(objects, truth)

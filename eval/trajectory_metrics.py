@@ -78,6 +78,10 @@ class TrajectoryEvaluation:
     """(P - 1,) rotation angle error of each motion between consecutive pairs [deg]."""
     T_gt_est: np.ndarray = field(repr=False)
     """(4, 4) SE(3) alignment applied to the estimate (estimate world -> ground-truth world)."""
+    alignment: str = "se3"
+    """How the estimate was aligned: "se3" (Umeyama, no scale), "origin" (its first pose
+    onto the ground truth's, evo's `align_origin`: the positions admitted no SE(3)
+    alignment, a camera turning in place) or "none"."""
     rpe_delta_frames: int = 0
     """Frame span of the RPE pairs (evo `--delta N --delta_unit f --all_pairs`); 0 if no RPE."""
     rpe_delta_s: float = 0.0
@@ -92,9 +96,11 @@ class TrajectoryEvaluation:
     None when the estimate's producer did not say."""
 
     def to_dict(self) -> dict[str, Any]:
-        """The eval.json content: exactly `EVAL_KEYS`, plus `object_size_errors` and
-        `tracked_fraction` when set."""
+        """The eval.json content: exactly `EVAL_KEYS`, plus `alignment` when it is not
+        "se3", and `object_size_errors` and `tracked_fraction` when set."""
         out: dict[str, Any] = {key: getattr(self, key) for key in EVAL_KEYS}
+        if self.alignment != "se3":
+            out["alignment"] = self.alignment
         if self.object_size_errors is not None:
             out["object_size_errors"] = self.object_size_errors
         if self.tracked_fraction is not None:
@@ -198,9 +204,12 @@ def evaluate_trajectory(
     max_time_difference_s: float = 0.02,
     rpe_delta_s: float = 1.0,
     align: bool = True,
+    origin_when_degenerate: bool = False,
 ) -> TrajectoryEvaluation:
     """ATE (evo APE, translation part, SE(3) Umeyama alignment without scale; with
-    `align` False none, for runs that start at the true pose) and RPE per
+    `align` False none, for runs that start at the true pose; with
+    `origin_when_degenerate`, the first poses aligned where the positions admit no SE(3)
+    alignment, as `evo_ape -a` refuses and `--align_origin` does) and RPE per
     `rpe_delta_s` (evo RPE, translation [m] and rotation angle [deg], all pairs `rpe_delta_frames`
     apart) of `estimate` against `groundtruth` (T_world_cam trajectories or TUM files).
 
@@ -214,15 +223,20 @@ def evaluate_trajectory(
     gt_sync, est_sync = associate(groundtruth, estimate, max_time_difference_s)
 
     est_aligned = copy.deepcopy(est_sync)
-    rotation, translation = np.eye(3), np.zeros(3)
+    T_gt_est, alignment = np.eye(4), "se3" if align else "none"
     try:
         if align:
             rotation, translation, _ = est_aligned.align(gt_sync, correct_scale=False)
+            T_gt_est = lie_algebra.se3(rotation, translation)
     except GeometryException as exc:
-        raise EvaluationError(
-            f"cannot align the estimate to the ground truth ({exc}); the {gt_sync.num_poses} "
-            "associated positions are degenerate (all equal or on one line?)"
-        ) from None
+        if not origin_when_degenerate:
+            raise EvaluationError(
+                f"cannot align the estimate to the ground truth ({exc}); the "
+                f"{gt_sync.num_poses} associated positions are degenerate (all equal or on "
+                "one line?)"
+            ) from None
+        est_aligned = copy.deepcopy(est_sync)
+        T_gt_est, alignment = est_aligned.align_origin(gt_sync), "origin"
 
     pair = (gt_sync, est_aligned)
     translation_part, angle_deg = (
@@ -267,7 +281,8 @@ def evaluate_trajectory(
         ate_rotation_errors_deg=np.asarray(ape_rotation.error, dtype=np.float64),
         step_errors_m=np.asarray(_rpe(pair, translation_part, 1).error, dtype=np.float64),
         step_errors_deg=np.asarray(_rpe(pair, angle_deg, 1).error, dtype=np.float64),
-        T_gt_est=lie_algebra.se3(rotation, translation),
+        T_gt_est=T_gt_est,
+        alignment=alignment,
         rpe_delta_frames=delta_frames,
         rpe_delta_s=delta_s,
         max_time_difference_s=float(max_time_difference_s),

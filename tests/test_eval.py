@@ -216,6 +216,31 @@ def test_degenerate_positions() -> None:
         evaluate_trajectory(gt, still)
 
 
+def test_a_camera_turning_in_place_is_evaluated_from_its_first_pose(tmp_path: Path) -> None:
+    """Positions that admit no SE(3) alignment (a pure rotation): `planeslam eval` aligns
+    the first poses instead (evo's align_origin), says so, and writes it in eval.json; the
+    error is then the estimate's offset from the truth relative to its first pose."""
+    gt = circle_trajectory()
+    turning = gt.T_world_cam.copy()
+    turning[:, :3, 3] = [0.5, -1.0, 1.2]  # the camera turns in place
+    gt = Trajectory(gt.timestamps, turning)
+    T_other_world = np.eye(4)
+    T_other_world[:3, 3] = [2.0, 0.0, -1.0]
+    est_poses = T_other_world @ turning
+    est_poses[60:, :3, 3] += [0.03, 0.0, 0.04]  # a 5 cm jump, kept
+    write_tum(tmp_path / "gt.txt", gt)
+    write_tum(tmp_path / "est.txt", Trajectory(gt.timestamps.copy(), est_poses))
+    with pytest.raises(EvaluationError, match="cannot align"):
+        evaluate_trajectory(tmp_path / "gt.txt", tmp_path / "est.txt")
+    run = evaluate_to_folder(tmp_path / "gt.txt", tmp_path / "est.txt", tmp_path / "out")
+    assert run.evaluation.alignment == "origin"
+    assert any("align_origin" in w for w in run.warnings)
+    np.testing.assert_allclose(run.evaluation.ate_max_m, 0.05, atol=1e-9)
+    np.testing.assert_allclose(run.evaluation.ate_rmse_m, 0.05 * np.sqrt(90 / 150), atol=1e-9)
+    data = json.loads((tmp_path / "out" / "eval.json").read_text())
+    assert data["alignment"] == "origin"
+
+
 def test_bad_rpe_delta() -> None:
     gt = circle_trajectory()
     with pytest.raises(EvaluationError, match="rpe_delta_s"):
