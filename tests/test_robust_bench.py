@@ -241,6 +241,29 @@ def test_method_figures_on_a_run_with_a_jump_a_wrong_relocalisation_and_lost_fra
     assert clean.passed and clean.ate_m == pytest.approx(0.0, abs=1e-9)
 
 
+def test_the_furniture_size_error_leaves_the_room_out() -> None:
+    """A room seen in part measures metres off; the box beside it 1 cm: the object size
+    error mixes both, the furniture's is the box's alone."""
+    n = 10
+    stamps = np.arange(n) / 30.0
+    truth = Trajectory(stamps, _poses(n))
+    truth_objects = {
+        "objects": [
+            {"id": 0, "class": "room", "size_m": [8.0, 4.0, 2.5]},
+            {"id": 1, "class": "box", "size_m": [0.5, 0.4, 0.3]},
+        ]
+    }
+    objects = [
+        {"id": 7, "class": "room", "planes": [0, 1, 2], "size_m": [3.0, 1.5]},
+        {"id": 8, "class": "box", "planes": [3, 4, 5], "size_m": [0.51, 0.41, 0.31]},
+    ]
+    figures = method_figures(truth, truth, n, 30.0, objects=objects, truth_objects=truth_objects)
+    assert figures.furniture_size_error_m == pytest.approx(0.01)
+    assert figures.object_size_error_m == pytest.approx(((5.0 + 2.5) / 2 + 0.01) / 2)
+    alone = method_figures(truth, truth, n, 30.0, objects=objects[:1], truth_objects=truth_objects)
+    assert alone.furniture_size_error_m is None  # no box found: nothing to measure
+
+
 def test_a_camera_turning_in_place_gets_an_unaligned_ate() -> None:
     n = 20
     truth_poses = np.tile(np.eye(4), (n, 1, 1))
