@@ -590,7 +590,7 @@ def evaluate_to_folder(
     gt_path, est_path = Path(groundtruth), Path(estimate)
     out = Path(out_dir) if out_dir is not None else est_path.parent
     evaluation = evaluate_trajectory(
-        gt_path, est_path, max_time_difference_s, rpe_delta_s, origin_when_degenerate=True
+        gt_path, est_path, max_time_difference_s, rpe_delta_s, when_degenerate="origin"
     )
     evaluation = dataclasses.replace(evaluation, tracked_fraction=tracked_fraction)
     truth = Path(truth_json) if truth_json is not None else gt_path.parent / "truth.json"

@@ -15,7 +15,7 @@ import copy
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from evo.core import lie_algebra, metrics, sync
@@ -81,7 +81,8 @@ class TrajectoryEvaluation:
     alignment: str = "se3"
     """How the estimate was aligned: "se3" (Umeyama, no scale), "origin" (its first pose
     onto the ground truth's, evo's `align_origin`: the positions admitted no SE(3)
-    alignment, a camera turning in place) or "none"."""
+    alignment, a camera turning in place) or "none" (`align` False, or degenerate positions
+    with `when_degenerate` "none")."""
     rpe_delta_frames: int = 0
     """Frame span of the RPE pairs (evo `--delta N --delta_unit f --all_pairs`); 0 if no RPE."""
     rpe_delta_s: float = 0.0
@@ -204,12 +205,12 @@ def evaluate_trajectory(
     max_time_difference_s: float = 0.02,
     rpe_delta_s: float = 1.0,
     align: bool = True,
-    origin_when_degenerate: bool = False,
+    when_degenerate: Literal["raise", "origin", "none"] = "raise",
 ) -> TrajectoryEvaluation:
     """ATE (evo APE, translation part, SE(3) Umeyama alignment without scale; with
-    `align` False none, for runs that start at the true pose; with
-    `origin_when_degenerate`, the first poses aligned where the positions admit no SE(3)
-    alignment, as `evo_ape -a` refuses and `--align_origin` does) and RPE per
+    `align` False none, for runs that start at the true pose; where the positions admit
+    no SE(3) alignment, which `evo_ape -a` refuses, `when_degenerate` says what happens:
+    an EvaluationError, the first poses aligned (`--align_origin`) or none) and RPE per
     `rpe_delta_s` (evo RPE, translation [m] and rotation angle [deg], all pairs `rpe_delta_frames`
     apart) of `estimate` against `groundtruth` (T_world_cam trajectories or TUM files).
 
@@ -229,14 +230,15 @@ def evaluate_trajectory(
             rotation, translation, _ = est_aligned.align(gt_sync, correct_scale=False)
             T_gt_est = lie_algebra.se3(rotation, translation)
     except GeometryException as exc:
-        if not origin_when_degenerate:
+        if when_degenerate == "raise":
             raise EvaluationError(
                 f"cannot align the estimate to the ground truth ({exc}); the "
                 f"{gt_sync.num_poses} associated positions are degenerate (all equal or on "
                 "one line?)"
             ) from None
-        est_aligned = copy.deepcopy(est_sync)
-        T_gt_est, alignment = est_aligned.align_origin(gt_sync), "origin"
+        est_aligned, alignment = copy.deepcopy(est_sync), when_degenerate
+        if when_degenerate == "origin":
+            T_gt_est = est_aligned.align_origin(gt_sync)
 
     pair = (gt_sync, est_aligned)
     translation_part, angle_deg = (

@@ -198,17 +198,20 @@ class FusedCloudSize:
         points = points[np.all(np.isfinite(points), axis=1)]
         keys = np.floor(points / self.voxel_m).astype(np.int64)
         keys = keys[np.all(np.abs(keys) < _KEY_OFFSET, axis=1)]
-        self._pending.append(_distinct(_pack(keys)))
-        if len(self._pending) >= self._flush_every:
-            self._flush()
+        self._pend(_pack(keys))
 
     def _add_sampled(self, cloud: np.ndarray, stride: int, T_world_cam: np.ndarray) -> None:
         """`add`'s keys of the sampled valid points in one compiled pass (no temporaries;
         the GIL released): the same keys, bit for bit."""
         T = np.asarray(T_world_cam, dtype=np.float64)
-        packed = sampled_voxel_keys_kernel(
-            np.asarray(cloud, dtype=np.float32), stride, T, self.voxel_m, _KEY_BITS
+        self._pend(
+            sampled_voxel_keys_kernel(
+                np.asarray(cloud, dtype=np.float32), stride, T, self.voxel_m, _KEY_BITS
+            )
         )
+
+    def _pend(self, packed: np.ndarray) -> None:
+        """Queue the (N,) packed keys of one addition; merged every `flush_every`."""
         self._pending.append(_distinct(packed))
         if len(self._pending) >= self._flush_every:
             self._flush()
