@@ -1,6 +1,8 @@
 """The sweep along a partial plane pose's free direction: a robot step along a wall found
 from the colours, never a checkerboard's other period, and no answer where the wall is
-bare (nothing observes the slide)."""
+bare (nothing observes the slide). Its cost also chooses among the dense fallback's
+results: a pose that lands clearly better wins, two that a bare wall fits alike do not
+let noise decide."""
 
 from __future__ import annotations
 
@@ -12,8 +14,15 @@ from planeslam.frontend.cloud import PixelRays, organized_cloud
 from planeslam.sim.render import render_frame
 from planeslam.sim.scene_model import Box, Texture, make_scene
 from planeslam.sim.scenes import look_at
-from planeslam.tracking.dense import smooth_grey
-from planeslam.tracking.sweep import LastFrame, sweep_free_translation
+from planeslam.tracking.config import TrackingConfig
+from planeslam.tracking.dense import DenseFallback, smooth_grey
+from planeslam.tracking.estimator import Primitive
+from planeslam.tracking.sweep import (
+    LastFrame,
+    landing_cost,
+    lands_better,
+    sweep_free_translation,
+)
 
 pytestmark = pytest.mark.unit
 
@@ -37,6 +46,7 @@ def _frames(pattern: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]
         frames.append(
             {
                 "T": T,
+                "rgb": rendered.rgb,
                 "cloud": organized_cloud(rendered.depth_m, PixelRays.for_camera(CAMERA)),
                 "grey": smooth_grey(rendered.rgb),
                 "depth": rendered.depth_m,
@@ -74,3 +84,72 @@ def test_a_bare_wall_gives_no_answer() -> None:
     (its profile is flat), so the caller keeps its own starts."""
     previous, current = _frames("none")
     assert _sweep(previous, current) is None
+
+
+def _slid(current: dict[str, np.ndarray], by_m: float) -> np.ndarray:
+    """The current pose moved `by_m` along the wall (-STEP_M: the step missed, at the last
+    pose's place; +STEP_M: a prediction that overshot by a step)."""
+    T = current["T"].copy()
+    T[:3, 3] += by_m * ALONG_WALL
+    return T
+
+
+def _landing(previous: dict[str, np.ndarray], current: dict[str, np.ndarray], T) -> float:
+    last = LastFrame(previous["T"], previous["depth"], previous["grey"])
+    return landing_cost(T, current["cloud"], current["grey"], last, CAMERA, stride=4)
+
+
+@pytest.mark.parametrize("by_m", [-STEP_M, STEP_M])
+def test_on_a_textured_wall_the_true_pose_lands_clearly_better(by_m: float) -> None:
+    previous, current = _frames("noise")
+    true_cost = _landing(previous, current, current["T"])
+    slid_cost = _landing(previous, current, _slid(current, by_m))
+    assert lands_better(true_cost, slid_cost)
+    assert not lands_better(slid_cost, true_cost)
+
+
+def test_on_a_bare_wall_the_true_pose_does_not_land_better() -> None:
+    """Nothing observes the slide: the costs differ by noise only."""
+    previous, current = _frames("none")
+    true_cost = _landing(previous, current, current["T"])
+    for by_m in (-STEP_M, STEP_M):
+        assert not lands_better(true_cost, _landing(previous, current, _slid(current, by_m)))
+    assert not lands_better(_landing(previous, current, _slid(current, STEP_M)), true_cost)
+
+
+class _ReturnsItsStart:
+    """RGB-D odometry that converges where it starts: the dense fallback's choice among
+    its starts' results is what is tested."""
+
+    def image(self, rgb: np.ndarray, depth_m: np.ndarray) -> None:
+        return None
+
+    def motion(self, image, previous_image, T_prev_cur_init: np.ndarray) -> np.ndarray:
+        return T_prev_cur_init
+
+
+def _dense_choice(pattern: str, true_first: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(the pose the dense fallback takes, the true pose) from two starts: the true pose
+    and one a step further along the wall, the true one first or second."""
+    previous, current = _frames(pattern)
+    dense = DenseFallback(TrackingConfig(icp=False), _ReturnsItsStart(), CAMERA)
+    dense.remember(0.0, previous["cloud"], (previous["rgb"], previous["depth"]), previous["T"])
+    starts = [current["T"], _slid(current, STEP_M)]
+    rgbd = (current["rgb"], current["depth"])
+    taken = dense.register(starts if true_first else starts[::-1], current["cloud"], rgbd, [])
+    assert taken is not None and taken.filled_by is Primitive.ODOMETRY
+    return taken.T, current["T"]
+
+
+def test_the_dense_fallback_takes_the_start_that_lands_better() -> None:
+    """A textured wall: the true start comes second and lands clearly better."""
+    taken, truth = _dense_choice("noise", true_first=False)
+    np.testing.assert_allclose(taken, truth, atol=1e-12)
+
+
+def test_the_dense_fallback_keeps_the_first_start_where_nothing_tells_them_apart() -> None:
+    """A bare wall: both land alike, so the first start stays (noise does not choose)."""
+    taken, truth = _dense_choice("none", true_first=True)
+    np.testing.assert_allclose(taken, truth, atol=1e-12)
+    taken, truth = _dense_choice("none", true_first=False)
+    np.testing.assert_allclose(taken[:3, 3] - truth[:3, 3], STEP_M * ALONG_WALL, atol=1e-12)

@@ -27,7 +27,12 @@ from planeslam.frontend.cloud import sampled_points
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import Primitive
 from planeslam.tracking.registration import RegistrationResult, refine_icp
-from planeslam.tracking.sweep import LastFrame, sweep_free_translation
+from planeslam.tracking.sweep import (
+    LastFrame,
+    landing_cost,
+    lands_better,
+    sweep_free_translation,
+)
 
 if TYPE_CHECKING:
     from planeslam.frontend.pipeline import FrameObservation
@@ -146,13 +151,14 @@ class DenseFallback:
     ) -> DensePose | None:
         """RGB-D odometry, then ICP, against the previous frame from each of the (4, 4)
         `starts` (one equal to an earlier start is skipped): per start the first result
-        taken (`_acceptable`); of those, the one whose colours differ least from the
-        previous frame's (`colour_difference`; ties to the earlier start), or None."""
+        taken (`_acceptable`); of those, the one that lands best on the previous frame
+        (`sweep.landing_cost`: depth and grey residuals beyond the noise; a later start must
+        land clearly better, `sweep.lands_better`), or None."""
         methods: list[tuple[Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
             methods.append((Primitive.ICP, lambda T0: self._icp(cloud, T0)))
-        taken: list[tuple[float, DensePose]] = []
+        best: tuple[float, DensePose] | None = None
         for k, T_start in enumerate(starts):
             if any(np.array_equal(T_start, earlier) for earlier in starts[:k]):
                 continue
@@ -160,13 +166,12 @@ class DenseFallback:
                 T = method(T_start)
                 if T is None:
                     continue
-                difference = self._acceptable(
-                    kind, T, cloud, rgbd, reasons, slides, keypoints_agree
-                )
-                if difference is not None:
-                    taken.append((difference, DensePose(T, kind)))
+                if self._acceptable(kind, T, cloud, rgbd, reasons, slides, keypoints_agree):
+                    cost = self._landing_cost(cloud, rgbd, T)
+                    if best is None or lands_better(cost, best[0]):
+                        best = (cost, DensePose(T, kind))
                     break
-        return min(taken, key=lambda pair: pair[0])[1] if taken else None
+        return None if best is None else best[1]
 
     def swept(
         self,
@@ -187,12 +192,27 @@ class DenseFallback:
             or self.camera is None
         ):
             return None
-        assert self.previous_pose is not None, "set with the previous cloud"
+        grey, last = self._landing_inputs(rgbd)
+        return sweep_free_translation(T_center, free[0], cloud, grey, last, self.camera)
+
+    def _landing_inputs(self, rgbd: RgbdPair | None) -> tuple[np.ndarray | None, LastFrame]:
+        """This frame's grey levels (None without both frames' colours) and the previous
+        frame to land it on, for the sweep's cost."""
+        assert self.previous_pose is not None and self.previous_cloud is not None
         grey = grey_prev = None
         if rgbd is not None and self.previous_rgbd is not None:
             grey, grey_prev = self._grey(rgbd[0]), self._grey(self.previous_rgbd[0])
-        last = LastFrame(self.previous_pose, self.previous_cloud[..., 2], grey_prev)
-        return sweep_free_translation(T_center, free[0], cloud, grey, last, self.camera)
+        return grey, LastFrame(self.previous_pose, self.previous_cloud[..., 2], grey_prev)
+
+    def _landing_cost(
+        self, cloud: np.ndarray | None, rgbd: RgbdPair | None, T_world_cam: np.ndarray
+    ) -> float:
+        """`sweep.landing_cost` of this frame at T_world_cam (4, 4), every `icp_stride`-th
+        pixel; inf without a cloud, the previous frame's or a camera."""
+        if cloud is None or self.previous_cloud is None or self.camera is None:
+            return float("inf")
+        grey, last = self._landing_inputs(rgbd)
+        return landing_cost(T_world_cam, cloud, grey, last, self.camera, self.config.icp_stride)
 
     def _acceptable(
         self,
@@ -203,27 +223,27 @@ class DenseFallback:
         reasons: list[str],
         slides: Callable[[], bool],
         keypoints_agree: Callable[[np.ndarray], bool],
-    ) -> float | None:
-        """The colour difference of the dense pose T (4, 4) by `kind` (inf where it cannot
-        be measured) when T overlaps the previous frame's depth and its colours do not
-        contradict it, else None. When the frame `slides()` (its depth mostly on parallel
-        planes, which any slide along them still overlaps) and the colours cannot tell,
-        `keypoints_agree(T)` must hold. Why a result was refused is appended to `reasons`."""
+    ) -> bool:
+        """Whether the dense pose T (4, 4) by `kind` overlaps the previous frame's depth
+        and its colours do not contradict it. When the frame `slides()` (its depth mostly on
+        parallel planes, which any slide along them still overlaps) and the colours cannot
+        tell, `keypoints_agree(T)` must hold. Why a result was refused is appended to
+        `reasons`."""
         if not self.agrees(cloud, T):
             reasons.append(f"{kind.value} result does not overlap the previous frame")
-            return None
+            return False
         measured = self.colour_difference(cloud, rgbd, T)
         colours = colour_verdict(measured)
         if colours is ColourCheck.CONTRADICTS:
             reasons.append(f"{kind.value} result: the colours contradict the previous frame")
-            return None
+            return False
         if colours is ColourCheck.UNKNOWN and slides() and not keypoints_agree(T):
             reasons.append(
                 f"{kind.value} result unconfirmed: the frame's depth is parallel planes "
                 "and its keypoints do not agree"
             )
-            return None
-        return np.inf if measured is None else measured[0]
+            return False
+        return True
 
     def _points(self, cloud: np.ndarray) -> np.ndarray:
         """(P, 3) float64 valid camera-frame points of an (H, W, 3) organised cloud for ICP,

@@ -56,6 +56,10 @@ RIVAL_MARGIN = 0.5
 """The best rival must cost more than the best by this share of (median - best): a
 repetitive texture's period, or a symmetric layout, leaves two basins alike, and then the
 sweep says nothing."""
+LANDING_MARGIN = 1e-3
+"""Of two poses, the one whose landing cost is lower by less than this does not beat the
+other (`lands_better`): 0.1 % of the points fully off, what the parallax of depth noise
+costs the true pose at a bare wall's colour edges (a pose with no translation has none)."""
 MIN_SCORED_SHARE = 0.3
 """A candidate that puts fewer than this share of the sampled points on the previous
 frame's valid depth is not scored."""
@@ -96,6 +100,32 @@ def sweep_free_translation(
     T = T_center.copy()
     T[:3, 3] += moves[best]
     return T
+
+
+def landing_cost(
+    T_world_cam: np.ndarray,
+    cloud: np.ndarray,
+    grey: np.ndarray | None,
+    last: LastFrame,
+    camera: CameraConfig,
+    stride: int,
+) -> float:
+    """The sweep's cost (`_shift_costs`) of the frame at T_world_cam (4, 4): its organised
+    cloud (H, W, 3, camera frame) and grey levels ((H, W) float or None), every
+    `stride`-th pixel, landed on `last`; inf when too few points land. Unlike a median
+    colour difference, it counts only residuals beyond the noise, so the few pixels that
+    see an edge or a poster decide between two poses that a bare wall fits alike."""
+    xyz, values = sampled_points(cloud, stride, grey)
+    if len(xyz) < 100:
+        return float("inf")
+    return float(_shift_costs(T_world_cam, np.zeros((1, 3)), xyz, values, last, camera)[0])
+
+
+def lands_better(cost: float, rival_cost: float) -> bool:
+    """Whether a pose of `landing_cost` `cost` clearly beats one of `rival_cost`: at most
+    DISTINCT_RATIO of it and LANDING_MARGIN below it (two poses on bare surfaces both cost
+    about 0, and noise would decide)."""
+    return cost <= DISTINCT_RATIO * rival_cost and cost < rival_cost - LANDING_MARGIN
 
 
 def _distinct_best(shifts: np.ndarray, cost: np.ndarray) -> int | None:

@@ -15,8 +15,9 @@ path that gives a pose its evidence supports:
 3. `odometry` / `icp` (`dense`, right after a tracked frame only): RGB-D odometry, then
    ICP, against the previous frame, each accepted by its own overlap and colours (a plane
    pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`), started
-   with the free directions at the previous frame's pose and at the prediction, the
-   colours deciding. Keypoints that agree on no pose are no evidence against them.
+   with the free directions at the previous frame's pose and at the prediction; the
+   result that lands clearly best on the previous frame is taken (`sweep.lands_better`).
+   Keypoints that agree on no pose are no evidence against them.
 4. `relocalised` (`relocalise`): a map-wide search. Right after a tracked frame, among
    the hypotheses a plausible motion reaches (`relocalise_nearby`: no rival within that
    bound; between close frames, the colours must not contradict it); after a loss, over
@@ -46,10 +47,7 @@ from planeslam.tracking import motion
 from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.dense import ColourCheck, DenseFallback, RgbdPair, parallel_share
-from planeslam.tracking.estimator import (
-    PoseConstraints,
-    Primitive,
-)
+from planeslam.tracking.estimator import PoseConstraints, Primitive
 from planeslam.tracking.joint import JointEstimator, JointSolve, estimator_settings
 from planeslam.tracking.keypoints import (
     NO_KEYPOINTS,
