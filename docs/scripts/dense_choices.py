@@ -1,0 +1,97 @@
+"""What the dense fallback tried and took, frame by frame, against the true step
+(docs/experiments.md, "Choosing among the dense fallback's results").
+
+    python docs/scripts/dense_choices.py SEQUENCE OUT [FRAMES] [INDICES]
+
+Runs `planeslam run` on the TUM-layout folder SEQUENCE (with groundtruth.txt, one pose
+per frame, as `planeslam synth` writes) into OUT, the first FRAMES frames (default all).
+For every frame (or only the comma-separated INDICES) that reaches the dense fallback it
+prints the true step, each start and each result as a step from the previous frame's
+pose with its error against the true step [cm], the result's median colour difference
+(what chose before) and landing cost (`sweep.landing_cost`, what chooses now), and the
+result taken. Steps are (x, y, z) [m] in the previous camera's frame and turns [deg].
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+import planeslam.slam.system as system
+import planeslam.tracking.dense as dense
+from planeslam.app.runner import run_sequence
+from planeslam.io.trajectory import read_tum
+
+sequence, out = sys.argv[1], sys.argv[2]
+frames = int(sys.argv[3]) if len(sys.argv) > 3 else None
+indices = {int(i) for i in sys.argv[4].split(",")} if len(sys.argv) > 4 else None
+truth = list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam)
+current = {"frame": -1}
+
+
+def _step(T_from: np.ndarray, T_to: np.ndarray) -> tuple[np.ndarray, float]:
+    """The motion from T_from to T_to (4, 4): its translation (3,) [m], its turn [deg]."""
+    step = np.linalg.inv(T_from) @ T_to
+    return step[:3, 3], float(np.degrees(Rotation.from_matrix(step[:3, :3]).magnitude()))
+
+
+def _described(fallback: dense.DenseFallback, T: np.ndarray) -> str:
+    """T (4, 4) as a step from the previous frame's pose, and its error against the truth."""
+    i = current["frame"]
+    assert fallback.previous_pose is not None
+    move, turn = _step(fallback.previous_pose, T)
+    true_step = np.linalg.inv(truth[i - 1]) @ truth[i]
+    estimated = np.linalg.inv(fallback.previous_pose) @ T
+    error_cm = 100 * np.linalg.norm((np.linalg.inv(true_step) @ estimated)[:3, 3])
+    return f"{np.round(move, 3)} {turn:.1f} deg (error {error_cm:.1f} cm)"
+
+
+def _shown() -> bool:
+    return indices is None or current["frame"] in indices
+
+
+def _counting(process):
+    def wrapper(self, *args, **kwargs):
+        current["frame"] += 1
+        return process(self, *args, **kwargs)
+
+    return wrapper
+
+
+def _showing_register(register):
+    def wrapper(self, starts, cloud, rgbd, reasons, *args, **kwargs):
+        if _shown():
+            move, turn = _step(truth[current["frame"] - 1], truth[current["frame"]])
+            print(f"frame {current['frame']}: true step {np.round(move, 3)} {turn:.1f} deg")
+            for T in starts:
+                print("  start", _described(self, T))
+        taken = register(self, starts, cloud, rgbd, reasons, *args, **kwargs)
+        if _shown():
+            print("  taken", "nothing" if taken is None else _described(self, taken.T))
+        return taken
+
+    return wrapper
+
+
+def _showing_acceptable(acceptable):
+    def wrapper(self, kind, T, cloud, rgbd, *args, **kwargs):
+        accepted = acceptable(self, kind, T, cloud, rgbd, *args, **kwargs)
+        if _shown():
+            measured = self.colour_difference(cloud, rgbd, T)
+            median = "-" if measured is None else f"{measured[0]:.3f}"
+            print(
+                f"    {kind.value}: {_described(self, T)} accepted {accepted}, "
+                f"median colour difference {median}, "
+                f"landing cost {self._landing_cost(cloud, rgbd, T):.4f}"
+            )
+        return accepted
+
+    return wrapper
+
+
+system.SLAM.process = _counting(system.SLAM.process)
+dense.DenseFallback.register = _showing_register(dense.DenseFallback.register)
+dense.DenseFallback._acceptable = _showing_acceptable(dense.DenseFallback._acceptable)
+run_sequence(sequence, out, max_frames=frames)
