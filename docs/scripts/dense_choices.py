@@ -7,9 +7,10 @@ Runs `planeslam run` on the TUM-layout folder SEQUENCE (with groundtruth.txt, on
 per frame, as `planeslam synth` writes) into OUT, the first FRAMES frames (default all).
 For every frame (or only the comma-separated INDICES) that reaches the dense fallback it
 prints the true step, each start and each result as a step from the previous frame's
-pose with its error against the true step [cm], the result's median colour difference
-(what chose before) and landing cost (`sweep.landing_cost`, what chooses now), and the
-result taken. Steps are (x, y, z) [m] in the previous camera's frame and turns [deg].
+pose with its error against the true step [cm] and its landing cost
+(`sweep.landing_cost`, what chooses among the results), each result's median colour
+difference (what chose before), and the result taken. Steps are (x, y, z) [m] in the
+previous camera's frame and turns [deg].
 """
 
 from __future__ import annotations
@@ -66,7 +67,8 @@ def _showing_register(register):
             move, turn = _step(truth[current["frame"] - 1], truth[current["frame"]])
             print(f"frame {current['frame']}: true step {np.round(move, 3)} {turn:.1f} deg")
             for T in starts:
-                print("  start", _described(self, T))
+                cost = self._landing_cost(cloud, rgbd, T)
+                print("  start", _described(self, T), f"landing cost {cost:.4f}")
         taken = register(self, starts, cloud, rgbd, reasons, *args, **kwargs)
         if _shown():
             print("  taken", "nothing" if taken is None else _described(self, taken.T))
