@@ -53,7 +53,7 @@ import logging
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import gtsam
 import numpy as np
@@ -72,18 +72,21 @@ from planeslam.core.types import (
     PlaneMeasurement,
 )
 from planeslam.frontend.config import ObjectConfig
-from planeslam.frontend.objects import DEFAULT_PATTERNS, ObjectPattern
-from planeslam.frontend.pipeline import FrameObservation
 from planeslam.mapping.config import MapConfig
 from planeslam.tracking.association import associate_with_corners
 
 from .config import LandmarkConfig, LandmarkKeys
 from .corner_observation import corner_factor
 from .gating import pose_covariance_matrix, pose_gate_sigmas
-from .landmark_objects import LandmarkObject, LandmarkObjectMap
 from .plane_observation import plane_factor, robust_plane_factor
 from .plane_structure import same_plane_factor, structural_factor
 from .point_on_plane import point_on_plane_factor
+
+if TYPE_CHECKING:  # imported where used: the backend's process needs none of the front end
+    from planeslam.frontend.objects import ObjectPattern
+    from planeslam.frontend.pipeline import FrameObservation
+
+    from .landmark_objects import LandmarkObject, LandmarkObjectMap
 
 logger = logging.getLogger(__name__)
 
@@ -145,10 +148,11 @@ class PlaneLandmarks:
         config: LandmarkConfig | None = None,
         map_config: MapConfig | None = None,
         object_config: ObjectConfig | None = None,
-        patterns: tuple[ObjectPattern, ...] = DEFAULT_PATTERNS,
+        patterns: tuple[ObjectPattern, ...] | None = None,
     ) -> None:
-        """`map_config`, `object_config` and `patterns` shape the object layer (`objects`):
-        merging, re-aggregation, classes."""
+        """`map_config`, `object_config` and `patterns` (None: the front end's
+        `DEFAULT_PATTERNS`) shape the object layer (`objects`): merging, re-aggregation,
+        classes."""
         if not isinstance(keys, LandmarkKeys):
             raise ConfigError(f"keys={keys!r}: expected a planeslam.factors.LandmarkKeys")
         self.keys = keys
@@ -159,7 +163,8 @@ class PlaneLandmarks:
         self._joined: set[int] = set()  # landmarks joined into another one
         self._next_plane = 0
         self._next_corner = 0
-        self._objects = LandmarkObjectMap(map_config, object_config, patterns)
+        self._object_settings = (map_config, object_config, patterns)
+        self._object_map: LandmarkObjectMap | None = None
 
     # ------------------------------------------------------------------ table
 
@@ -243,7 +248,8 @@ class PlaneLandmarks:
             self._corners.pop(k, None)
         gone = set(plane_ids)
         self._structure_pairs = {p for p in self._structure_pairs if not gone.intersection(p)}
-        self._objects.forget(plane_ids, corner_ids)
+        if self._object_map is not None:
+            self._object_map.forget(plane_ids, corner_ids)
 
     def join_planes(
         self, graph: gtsam.NonlinearFactorGraph, pairs: Iterable[tuple[int, int]]
@@ -278,6 +284,21 @@ class PlaneLandmarks:
         )
 
     # ------------------------------------------------------------------ objects
+
+    @property
+    def _objects(self) -> LandmarkObjectMap:
+        """The object layer, made at first use: it imports the front end's object stages,
+        which a caller that adds `FrameMeasurements` only (the backend's process) never
+        needs."""
+        if self._object_map is None:
+            from .landmark_objects import LandmarkObjectMap
+
+            map_config, object_config, patterns = self._object_settings
+            if patterns is None:
+                self._object_map = LandmarkObjectMap(map_config, object_config)
+            else:
+                self._object_map = LandmarkObjectMap(map_config, object_config, patterns)
+        return self._object_map
 
     def objects(self) -> list[LandmarkObject]:
         """Plane-based objects (paper 4.2-4.3: class such as 'room' or 'box', size [m]) of
@@ -321,8 +342,7 @@ class PlaneLandmarks:
         `add_observations`.
         """
         cfg = self.config
-        if isinstance(measurements, FrameObservation):
-            measurements = measurements.measurements()
+        measurements, _ = _frame_measurements(measurements)
         max_angle_deg = cfg.associate_max_angle_deg if max_angle_deg is None else max_angle_deg
         max_offset_m = cfg.associate_max_offset_m if max_offset_m is None else max_offset_m
         if max_corner_distance_m is None:
@@ -425,14 +445,7 @@ class PlaneLandmarks:
         the measurements lack.
         """
         cfg = self.config
-        observation = measurements if isinstance(measurements, FrameObservation) else None
-        if observation is not None:
-            measurements = observation.measurements()
-        if not isinstance(measurements, FrameMeasurements):
-            raise AssociationError(
-                f"measurements is a {type(measurements).__name__}, expected the front end's "
-                "FrameObservation or its FrameMeasurements"
-            )
+        measurements, observation = _frame_measurements(measurements)
         T = rigid_pose(T_world_cam, "T_world_cam")
         plane_ids = {int(i): int(j) for i, j in plane_ids.items()}
         corner_ids = {int(i): int(k) for i, k in (corner_ids or {}).items()}
@@ -624,4 +637,22 @@ def _check_one_to_one(ids: dict[int, int], name: str) -> None:
         seen[lm] = obs
 
 
-__all__ = ["AddedFactors", "LandmarkConfig", "LandmarkObject", "PlaneLandmarks"]
+def _frame_measurements(
+    measurements: FrameMeasurements | FrameObservation,
+) -> tuple[FrameMeasurements, FrameObservation | None]:
+    """(the frame's `FrameMeasurements`, the whole `FrameObservation` or None) of what the
+    caller gave; `FrameMeasurements` are recognised first, so they never import the front
+    end. AssociationError for anything else."""
+    if isinstance(measurements, FrameMeasurements):
+        return measurements, None
+    from planeslam.frontend.pipeline import FrameObservation
+
+    if isinstance(measurements, FrameObservation):
+        return measurements.measurements(), measurements
+    raise AssociationError(
+        f"measurements is a {type(measurements).__name__}, expected the front end's "
+        "FrameObservation or its FrameMeasurements"
+    )
+
+
+__all__ = ["AddedFactors", "LandmarkConfig", "PlaneLandmarks"]

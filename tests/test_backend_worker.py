@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 import pickle
+import subprocess
+import sys
 from pathlib import Path
 
 import gtsam
@@ -174,3 +176,17 @@ def test_python_factors_get_isam2s_own_values_not_a_copy() -> None:
         isam.update(graph, values)
     assert seen and all(seen)
     np.testing.assert_allclose(isam.calculateEstimate().atPoint3(2), [1.0, 2.0, 3.0], atol=1e-9)
+
+
+def test_the_backend_process_imports_no_front_end():
+    """The worker's iSAM2 backend and the landmark table it fills from `FrameMeasurements`
+    load neither the front end's stages nor numba, OpenCV or networkx: about half its
+    start-up CPU and 85 MB of its memory (docs/speed.md)."""
+    heavy = ["numba", "cv2", "networkx"]
+    heavy += ["planeslam.frontend.pipeline", "planeslam.frontend.objects"]
+    code = (
+        "import sys; import planeslam.backend.isam2; "
+        f"print([name for name in {heavy!r} if name in sys.modules])"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
