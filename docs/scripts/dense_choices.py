@@ -15,15 +15,17 @@ previous camera's frame and turns [deg].
 
 from __future__ import annotations
 
+import math
 import sys
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 import planeslam.slam.system as system
 import planeslam.tracking.dense as dense
 from planeslam.app.runner import run_sequence
+from planeslam.core.geometry import invert_pose, rotation_angle
 from planeslam.io.trajectory import read_tum
+from planeslam.tracking.hypotheses import pose_difference
 
 sequence, out = sys.argv[1], sys.argv[2]
 frames = int(sys.argv[3]) if len(sys.argv) > 3 else None
@@ -32,21 +34,23 @@ truth = list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam)
 current = {"frame": -1}
 
 
-def _step(T_from: np.ndarray, T_to: np.ndarray) -> tuple[np.ndarray, float]:
-    """The motion from T_from to T_to (4, 4): its translation (3,) [m], its turn [deg]."""
-    step = np.linalg.inv(T_from) @ T_to
-    return step[:3, 3], float(np.degrees(Rotation.from_matrix(step[:3, :3]).magnitude()))
+def _step(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
+    """(4, 4) the motion from T_from to T_to, in T_from's camera frame."""
+    return invert_pose(T_from) @ T_to
+
+
+def _shown_step(step: np.ndarray) -> str:
+    """A (4, 4) step as its translation [m] and its turn [deg]."""
+    return f"{np.round(step[:3, 3], 3)} {math.degrees(rotation_angle(step[:3, :3])):.1f} deg"
 
 
 def _described(fallback: dense.DenseFallback, T: np.ndarray) -> str:
     """T (4, 4) as a step from the previous frame's pose, and its error against the truth."""
     i = current["frame"]
     assert fallback.previous_pose is not None
-    move, turn = _step(fallback.previous_pose, T)
-    true_step = np.linalg.inv(truth[i - 1]) @ truth[i]
-    estimated = np.linalg.inv(fallback.previous_pose) @ T
-    error_cm = 100 * np.linalg.norm((np.linalg.inv(true_step) @ estimated)[:3, 3])
-    return f"{np.round(move, 3)} {turn:.1f} deg (error {error_cm:.1f} cm)"
+    estimated = _step(fallback.previous_pose, T)
+    error_m, _ = pose_difference(_step(truth[i - 1], truth[i]), estimated)
+    return f"{_shown_step(estimated)} (error {100 * error_m:.1f} cm)"
 
 
 def _shown() -> bool:
@@ -64,8 +68,8 @@ def _counting(process):
 def _showing_register(register):
     def wrapper(self, starts, cloud, rgbd, reasons, *args, **kwargs):
         if _shown():
-            move, turn = _step(truth[current["frame"] - 1], truth[current["frame"]])
-            print(f"frame {current['frame']}: true step {np.round(move, 3)} {turn:.1f} deg")
+            true_step = _step(truth[current["frame"] - 1], truth[current["frame"]])
+            print(f"frame {current['frame']}: true step {_shown_step(true_step)}")
             for T in starts:
                 cost = self._landing_cost(cloud, rgbd, T)
                 print("  start", _described(self, T), f"landing cost {cost:.4f}")
