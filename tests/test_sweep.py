@@ -6,10 +6,13 @@ let noise decide."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from planeslam.core.camera import CameraConfig
+from planeslam.core.geometry import rotation_angle
 from planeslam.frontend.cloud import PixelRays, organized_cloud
 from planeslam.sim.render import render_frame
 from planeslam.sim.scene_model import Box, Texture, make_scene
@@ -17,10 +20,12 @@ from planeslam.sim.scenes import look_at
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.dense import DenseFallback, smooth_grey
 from planeslam.tracking.estimator import Primitive
+from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.sweep import (
     LastFrame,
     landing_cost,
     lands_better,
+    sweep_free_motion,
     sweep_free_translation,
 )
 
@@ -32,16 +37,39 @@ ALONG_WALL = np.array([0.0, 1.0, 0.0])
 leave unfixed."""
 STEP_M = 0.15
 """A robot step along the wall [m], beyond RGB-D odometry's reach."""
+ROBOT_STEP_M = np.array([0.12, 0.08, 0.0])
+"""A robot's step on the floor [m, world frame]: toward the wall and along it."""
+VERTICAL = np.array([0.0, 0.0, 1.0])
+ALONG_FLOOR = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
-def _frames(pattern: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _turned(T: np.ndarray, step_m: np.ndarray, turn_deg: float) -> np.ndarray:
+    """T_world_cam (4, 4) moved by `step_m` (3,) [m, world] and turned `turn_deg` about the
+    vertical through its centre."""
+    a = np.radians(turn_deg)
+    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+    moved = T.copy()
+    moved[:3, :3] = R @ T[:3, :3]
+    moved[:3, 3] += step_m
+    return moved
+
+
+def _frames(
+    pattern: str, robot_turn_deg: float | None = None
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Two frames of a 4 x 4 m room, the camera 1.2 m from the wall x = 2 looking at it and
-    down at the floor, the second STEP_M along the wall: pose, cloud, grey and depth."""
+    down at the floor, the second STEP_M along the wall (with `robot_turn_deg`: a robot's
+    step forward and aside, ROBOT_STEP_M, turned that much about the vertical): pose, cloud,
+    grey and depth."""
     room = Box("room", np.array((0.0, 0.0, 1.25)), np.array((4.0, 4.0, 2.5)), kind="room")
     scene = make_scene("wall", (room,), texture=Texture(seed=3, pattern=pattern))
     frames = []
-    for y in (0.0, STEP_M):
-        T = look_at(np.array([0.8, y, 1.0]), np.array([2.0, y + 0.1, 0.4]))[0]
+    poses = [
+        look_at(np.array([0.8, y, 1.0]), np.array([2.0, y + 0.1, 0.4]))[0] for y in (0.0, STEP_M)
+    ]
+    if robot_turn_deg is not None:
+        poses[1] = _turned(poses[0], ROBOT_STEP_M, robot_turn_deg)
+    for T in poses:
         rendered = render_frame(scene, T, CAMERA, np.random.default_rng(len(frames)))
         frames.append(
             {
@@ -153,3 +181,64 @@ def test_the_dense_fallback_keeps_the_first_start_where_nothing_tells_them_apart
     np.testing.assert_allclose(taken, truth, atol=1e-12)
     taken, truth = _dense_choice("none", true_first=False)
     np.testing.assert_allclose(taken[:3, 3] - truth[:3, 3], STEP_M * ALONG_WALL, atol=1e-12)
+
+
+def _robot_sweep(pattern: str, turn_deg: float) -> tuple[list[np.ndarray], np.ndarray]:
+    """(the poses the sweep over the floor's free turn and directions offers, the true
+    pose), from the last pose's place and heading (the step and the turn missed)."""
+    previous, current = _frames(pattern, robot_turn_deg=turn_deg)
+    last = LastFrame(previous["T"], previous["depth"], previous["grey"])
+    offered = sweep_free_motion(
+        previous["T"],
+        VERTICAL[None],
+        ALONG_FLOOR,
+        current["cloud"],
+        current["grey"],
+        last,
+        CAMERA,
+    )
+    return offered, current["T"]
+
+
+def _near(T: np.ndarray, truth: np.ndarray, meters: float, degrees: float) -> bool:
+    turn = np.degrees(rotation_angle(T[:3, :3].T @ truth[:3, :3]))
+    return bool(np.linalg.norm(T[:3, 3] - truth[:3, 3]) <= meters and turn <= degrees)
+
+
+@pytest.mark.parametrize("turn_deg", [-9.0, 3.0, 13.0])
+def test_a_robot_step_and_turn_seen_with_the_floor_alone_is_offered(turn_deg: float) -> None:
+    """One plane (the floor) leaves the turn about it and the two directions along it
+    free: one of the grid's basins is within what RGB-D odometry refines."""
+    offered, truth = _robot_sweep("noise", turn_deg)
+    assert 1 <= len(offered) <= 2
+    assert any(_near(T, truth, 0.04, 2.0) for T in offered)
+
+
+def test_the_dense_fallback_lands_a_robot_step_and_turn_from_the_grid() -> None:
+    """With Open3D's RGB-D odometry: started at the last pose alone it misses a 14 cm
+    step and a 13 deg turn; the grid's starts, refined by it and chosen by how they land,
+    give the true pose."""
+    previous, current = _frames("noise", robot_turn_deg=13.0)
+    odometry = RgbdOdometry(CAMERA)
+    dense = DenseFallback(TrackingConfig(), odometry, CAMERA)
+    dense.remember(0.0, previous["cloud"], (previous["rgb"], previous["depth"]), previous["T"])
+    rgbd = (current["rgb"], current["depth"])
+    alone = dense.register([previous["T"]], current["cloud"], rgbd, [])
+    assert alone is None or not _near(alone.T, current["T"], 0.02, 1.0)
+    registration = SimpleNamespace(
+        unobservable_rotation_axes=VERTICAL[None], unobservable_translation_dirs=ALONG_FLOOR
+    )
+    starts = dense.with_swept([previous["T"]], registration, current["cloud"], rgbd)
+    assert len(starts) > 1 and np.array_equal(starts[0], previous["T"])
+    taken = dense.register(starts, current["cloud"], rgbd, [])
+    assert taken is not None and _near(taken.T, current["T"], 0.01, 0.5)
+
+
+def test_nothing_free_or_too_much_free_is_not_swept() -> None:
+    previous, current = _frames("noise")
+    last = LastFrame(previous["T"], previous["depth"], previous["grey"])
+    for axes, directions in ((np.zeros((0, 3)), np.zeros((0, 3))), (np.eye(3)[:2], np.eye(3)[:2])):
+        offered = sweep_free_motion(
+            current["T"], axes, directions, current["cloud"], current["grey"], last, CAMERA
+        )
+        assert offered == []

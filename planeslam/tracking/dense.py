@@ -31,7 +31,7 @@ from planeslam.tracking.sweep import (
     LastFrame,
     landing_cost,
     lands_better,
-    sweep_free_translation,
+    sweep_free_motion,
 )
 
 if TYPE_CHECKING:
@@ -173,27 +173,27 @@ class DenseFallback:
                     break
         return None if best is None else best[1]
 
-    def swept(
+    def with_swept(
         self,
-        T_center: np.ndarray,
+        starts: list[np.ndarray],
         registration: RegistrationResult,
         cloud: np.ndarray | None,
         rgbd: RgbdPair | None,
-    ) -> np.ndarray | None:
-        """T_center (4, 4) moved along the one translation direction `registration` left
-        free to where the frame best lands on the previous frame (`sweep_free_translation`),
-        or None: the rotation is not fixed, not one direction is free, or no cloud."""
-        free = registration.unobservable_translation_dirs
-        if (
-            len(registration.unobservable_rotation_axes)
-            or len(free) != 1
-            or cloud is None
-            or self.previous_cloud is None
-            or self.camera is None
-        ):
-            return None
+    ) -> list[np.ndarray]:
+        """`starts` (4, 4 each; the first with the free directions at the last pose) with
+        the sweep's poses along the directions `registration` left free
+        (`sweep_free_motion`): one free direction's distinct best goes first; the coarse
+        grid's basins (a free turn, or two free directions) go last, so they win only by
+        landing clearly better (on a bare floor any of them lands as well as the last
+        pose). Unchanged without a cloud."""
+        if not starts or cloud is None or self.previous_cloud is None or self.camera is None:
+            return starts
         grey, last = self._landing_inputs(rgbd)
-        return sweep_free_translation(T_center, free[0], cloud, grey, last, self.camera)
+        axes = registration.unobservable_rotation_axes
+        directions = registration.unobservable_translation_dirs
+        swept = sweep_free_motion(starts[0], axes, directions, cloud, grey, last, self.camera)
+        line = not len(axes) and len(directions) == 1
+        return [*swept, *starts] if line else [*starts, *swept]
 
     def _landing_inputs(self, rgbd: RgbdPair | None) -> tuple[np.ndarray | None, LastFrame]:
         """This frame's grey levels (None without both frames' colours) and the previous

@@ -11,8 +11,11 @@ residuals (furniture and edges that the planes do not fix) and grey-level residu
 dominate. The best candidate becomes one more start of the dense fallback, which still
 refines and accepts it by its own evidence.
 
-Planes that fix the rotation (two normals or more) leave at most one direction free;
-rotation fixed by corners or points with more left free is not swept.
+Planes that fix the rotation (two normals or more) leave at most one direction free. One
+plane (a floor seen by a robot) leaves the turn about its normal and the two directions
+along it free: a robot's step and turn. Those three, or two translation directions, are
+swept over a coarse grid, whose lowest local minima, refined on a finer grid, become
+later starts of the dense fallback (`sweep_free_motion`).
 
 Frames: every pose is T_world_cam (4, 4); the direction in the world frame.
 """
@@ -22,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from planeslam.core.camera import CameraConfig, nearest_pixels
 from planeslam.core.geometry import invert_pose
@@ -60,6 +64,18 @@ LANDING_MARGIN = 1e-3
 """Of two poses, the one whose landing cost is lower by less than this does not beat the
 other (`lands_better`): 0.1 % of the points fully off, what the parallax of depth noise
 costs the true pose at a bare wall's colour edges (a pose with no translation has none)."""
+COARSE_TURN_DEG = 20.0
+"""Half-width [deg] of the coarse grid's turn about a free axis: a robot's turn between
+frames, with the last pose's error."""
+COARSE_TURN_STEP_DEG = 4.0
+"""Coarse grid spacing of the turn [deg] (11 turns)."""
+COARSE_STEP_M = 0.05
+"""Coarse grid spacing [m] along each free direction (13 shifts over SWEEP_RANGE_M)."""
+COARSE_STRIDE_PX = 32
+"""Every COARSE_STRIDE_PX-th pixel in each direction scores the coarse grid (up to 300)."""
+BASINS = 2
+"""Lowest local minima of the coarse grid refined on the fine grid: starts of the dense
+methods."""
 MIN_SCORED_SHARE = 0.3
 """A candidate that puts fewer than this share of the sampled points on the previous
 frame's valid depth is not scored."""
@@ -100,6 +116,87 @@ def sweep_free_translation(
     T = T_center.copy()
     T[:3, 3] += moves[best]
     return T
+
+
+def sweep_free_motion(
+    T_center: np.ndarray,
+    axes: np.ndarray,
+    directions: np.ndarray,
+    cloud: np.ndarray,
+    grey: np.ndarray | None,
+    last: LastFrame,
+    camera: CameraConfig,
+) -> list[np.ndarray]:
+    """Poses (4, 4) of T_center turned about the free `axes` (K, 3) (unit, world frame,
+    K <= 1; about the camera centre) and moved along the free `directions` (L, 3) (unit,
+    world frame, 1 <= L <= 2) where the frame lands well on `last`, best first; none when
+    nothing is swept, too few points are valid, or nothing lands distinctly well.
+
+    One free direction alone is `sweep_free_translation`'s line: its one distinct,
+    unrivalled best. A free turn or two free directions are a coarse grid (COARSE_*,
+    every COARSE_STRIDE_PX-th pixel) whose BASINS lowest local minima, distinct from its
+    median, are each refined on a grid of half its spacing (every SWEEP_STRIDE_PX-th
+    pixel). A texture's basin is narrower than the coarse spacing, so these are only
+    starts: the dense methods refine them and the landing cost chooses."""
+    if len(axes) > 1 or not 1 <= len(directions) <= 2:
+        return []
+    if not len(axes) and len(directions) == 1:
+        found = sweep_free_translation(T_center, directions[0], cloud, grey, last, camera)
+        return [] if found is None else [found]
+    turns = np.radians(np.arange(-COARSE_TURN_DEG, COARSE_TURN_DEG + 1e-9, COARSE_TURN_STEP_DEG))
+    shifts = np.arange(-SWEEP_RANGE_M, SWEEP_RANGE_M + 1e-9, COARSE_STEP_M)
+    xyz, values = sampled_points(cloud, COARSE_STRIDE_PX, grey)
+    if len(xyz) < 50:
+        return []
+    grid = [turns] * len(axes) + [shifts] * len(directions)
+    poses = _grid_poses(T_center, axes, directions, grid)
+    basins = _coarse_basins(_pose_costs(poses, xyz, values, last, camera), [len(g) for g in grid])
+    half = [np.array([-1.0, -0.5, 0.0, 0.5, 1.0]) * (g[1] - g[0]) for g in grid]
+    xyz, values = sampled_points(cloud, SWEEP_STRIDE_PX, grey)
+    refined = []
+    for basin in basins:
+        fine = _grid_poses(poses[basin], axes, directions, half)
+        fine_cost = _pose_costs(fine, xyz, values, last, camera)
+        k = int(np.argmin(fine_cost))
+        refined.append((float(fine_cost[k]), fine[k]))
+    return [T for _, T in sorted(refined, key=lambda r: r[0])]
+
+
+def _coarse_basins(cost: np.ndarray, shape: list[int]) -> list[int]:
+    """Indices into `cost` (M,), a grid of `shape` (the last axis varying fastest), of its
+    BASINS lowest local minima (no lower neighbour along any axis) that are distinct from
+    its median (DISTINCT_RATIO, DISTINCT_MIN_COST); none when nothing is scored."""
+    finite = cost[np.isfinite(cost)]
+    if not len(finite):
+        return []
+    median = float(np.median(finite))
+    grid = cost.reshape(shape)
+    minima = np.isfinite(grid)
+    for axis in range(grid.ndim):
+        pad = [(1, 1) if a == axis else (0, 0) for a in range(grid.ndim)]
+        padded = np.pad(grid, pad, constant_values=np.inf)
+        below = np.take(padded, range(grid.shape[axis]), axis=axis)
+        above = np.take(padded, range(2, grid.shape[axis] + 2), axis=axis)
+        minima &= (grid <= below) & (grid <= above)
+    distinct = minima.ravel() & (cost <= min(DISTINCT_RATIO * median, median - DISTINCT_MIN_COST))
+    found = np.flatnonzero(distinct)
+    return found[np.argsort(cost[found], kind="stable")][:BASINS].tolist()
+
+
+def _grid_poses(
+    T_center: np.ndarray, axes: np.ndarray, directions: np.ndarray, values: list[np.ndarray]
+) -> np.ndarray:
+    """Every combination of `values` (one array per free axis, then per free direction:
+    turns [rad], shifts [m]) applied to T_center (4, 4) -> (M, 4, 4) poses, the last axis
+    varying fastest."""
+    steps = np.stack([g.ravel() for g in np.meshgrid(*values, indexing="ij")], axis=1)
+    poses = np.repeat(T_center[None], len(steps), axis=0)
+    for k, axis in enumerate(axes):
+        turn = Rotation.from_rotvec(steps[:, k, None] * axis).as_matrix()
+        poses[:, :3, :3] = turn @ poses[:, :3, :3]
+    for k, direction in enumerate(directions):
+        poses[:, :3, 3] += steps[:, len(axes) + k, None] * direction
+    return poses
 
 
 def landing_cost(
@@ -155,15 +252,37 @@ def _shift_costs(
     last: LastFrame,
     camera: CameraConfig,
 ) -> np.ndarray:
-    """(M,) cost of T_center (4, 4) moved by each of `moves` (M, 3) [m, world frame]: over
-    the frame's points `xyz` (N, 3, camera frame; their grey levels (N,) or None) moved
-    into `last`, the mean depth residual beyond the noise (DEPTH_NOISE_M), clipped, /
-    DEPTH_CLIP_M, plus (with both greys) the mean grey residual beyond GREY_NOISE, clipped,
-    / GREY_CLIP; inf where fewer than MIN_SCORED_SHARE of the points were scored."""
+    """(M,) `_landing_costs` of T_center (4, 4) moved by each of `moves` (M, 3) [m, world
+    frame], for the frame's points `xyz` (N, 3, camera frame; grey levels (N,) or None)."""
     T_prev_world = invert_pose(last.T_world_cam)
     T_prev_cam = T_prev_world @ T_center
     p0 = xyz @ T_prev_cam[:3, :3].T + T_prev_cam[:3, 3]  # (N, 3) previous camera
     p = p0[None, :, :] + (moves @ T_prev_world[:3, :3].T)[:, None, :]  # (M, N, 3)
+    return _landing_costs(p, grey, last, camera)
+
+
+def _pose_costs(
+    poses: np.ndarray,
+    xyz: np.ndarray,
+    grey: np.ndarray | None,
+    last: LastFrame,
+    camera: CameraConfig,
+) -> np.ndarray:
+    """(M,) `_landing_costs` of the frame at each of `poses` (M, 4, 4) T_world_cam, for its
+    points `xyz` (N, 3, camera frame; grey levels (N,) or None)."""
+    relative = invert_pose(last.T_world_cam)[None] @ poses  # (M, 4, 4) cam -> previous cam
+    p = (relative[:, :3, :3] @ xyz.T).transpose(0, 2, 1) + relative[:, None, :3, 3]
+    return _landing_costs(p, grey, last, camera)
+
+
+def _landing_costs(
+    p: np.ndarray, grey: np.ndarray | None, last: LastFrame, camera: CameraConfig
+) -> np.ndarray:
+    """(M,) cost of M placements `p` (M, N, 3) of the frame's N points in `last`'s camera
+    frame (their grey levels (N,) or None): the mean depth residual beyond the noise
+    (DEPTH_NOISE_M), clipped, / DEPTH_CLIP_M, plus (with both greys) the mean grey
+    residual beyond GREY_NOISE, clipped, / GREY_CLIP; inf where fewer than
+    MIN_SCORED_SHARE of the points were scored."""
     u, v, inside = nearest_pixels(camera, p)
     z, z_prev = p[..., 2], last.depth[v, u]
     scored = inside & (z_prev > 0) & np.isfinite(z_prev)
@@ -174,5 +293,5 @@ def _shift_costs(
         grey_excess = np.abs(last.grey[v, u] - grey[None, :]) - GREY_NOISE
         residual = residual + np.clip(grey_excess, 0.0, GREY_CLIP) / GREY_CLIP
     cost = np.where(scored, residual, 0.0).sum(axis=1) / np.maximum(counts, 1)
-    cost[counts < MIN_SCORED_SHARE * len(xyz)] = np.inf
+    cost[counts < MIN_SCORED_SHARE * p.shape[1]] = np.inf
     return cost

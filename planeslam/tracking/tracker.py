@@ -15,8 +15,9 @@ path that gives a pose its evidence supports:
 3. `odometry` / `icp` (`dense`, right after a tracked frame only): RGB-D odometry, then
    ICP, against the previous frame, each accepted by its own overlap and colours (a plane
    pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`), started
-   with the free directions at the previous frame's pose and at the prediction; the
-   result that lands clearly best on the previous frame is taken (`sweep.lands_better`).
+   with the free directions at the previous frame's pose, at the prediction and where a
+   sweep over them lands the frame well (`sweep`: a robot's step and turn); the result
+   that lands clearly best on the previous frame is taken (`sweep.lands_better`).
    Keypoints that agree on no pose are no evidence against them.
 4. `relocalised` (`relocalise`): a map-wide search. Right after a tracked frame, among
    the hypotheses a plausible motion reaches (`relocalise_nearby`: no rival within that
@@ -307,8 +308,7 @@ class Tracker:
                 else [self.planes.free_from(frame, view, good, T) for T in free_at]
             )
             if good is not None:  # a robot step lies beyond the dense methods' reach
-                swept = self.dense.swept(starts[0], good.registration, cloud, rgbd)
-                starts = starts if swept is None else [swept, *starts]
+                starts = self.dense.with_swept(starts, good.registration, cloud, rgbd)
             dense = self.dense.register(
                 starts, cloud, rgbd, reasons, slides, partial(self._keypoints_agree, keypoints)
             )
