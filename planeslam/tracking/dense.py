@@ -173,6 +173,17 @@ class DenseFallback:
                     break
         return None if best is None else best[1]
 
+    def unplaced_starts(self, T_pred: np.ndarray) -> list[np.ndarray]:
+        """Starts (4, 4) for a frame no plane placed: the prediction T_pred (4, 4), then
+        the last pose turned as predicted but not moved, then the last pose: the
+        constant-velocity prediction overshoots where a robot stops to turn in place or
+        the camera stops."""
+        if self.previous_pose is None:
+            return [T_pred]
+        turned = self.previous_pose.copy()
+        turned[:3, :3] = T_pred[:3, :3]
+        return [T_pred, turned, self.previous_pose]
+
     def with_swept(
         self,
         starts: list[np.ndarray],

@@ -16,8 +16,9 @@ path that gives a pose its evidence supports:
    ICP, against the previous frame, each accepted by its own overlap and colours (a plane
    pose that fixed some directions keeps them: `planes+odometry`, `planes+icp`), started
    with the free directions at the previous frame's pose, at the prediction and where a
-   sweep over them lands the frame well (`sweep`: a robot's step and turn); the result
-   that lands clearly best on the previous frame is taken (`sweep.lands_better`).
+   sweep over them lands the frame well (`sweep`: a robot's step and turn), or, no plane
+   placing the frame, at the prediction and at the last pose turned as predicted and not;
+   the result that lands clearly best on the previous frame is taken (`lands_better`).
    Keypoints that agree on no pose are no evidence against them.
 4. `relocalised` (`relocalise`): a map-wide search. Right after a tracked frame, among
    the hypotheses a plausible motion reaches (`relocalise_nearby`: no rival within that
@@ -303,7 +304,7 @@ class Tracker:
         if self.prediction_valid:
             free_at = [self.dense.previous_pose, T_pred]
             starts = (
-                [T_pred]
+                self.dense.unplaced_starts(T_pred)
                 if good is None
                 else [self.planes.free_from(frame, view, good, T) for T in free_at]
             )
