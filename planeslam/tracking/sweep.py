@@ -43,8 +43,10 @@ depth's quantisation, which repeats pixel for pixel and would otherwise favour t
 candidate that maps every pixel onto itself."""
 DEPTH_CLIP_M = 0.05
 """Depth residuals beyond the noise are clipped at this [m]."""
-GREY_NOISE = 5.0
-"""Grey-level residuals count beyond this (sensor noise after the blur)."""
+GREY_NOISE = 2.0
+"""Grey-level residuals count beyond this: three sigmas of the difference of two frames'
+sensor noise after the blur (3 grey levels per pixel, blurred by `COLOUR_BLUR_PX` = 2 px:
+0.6), so that a low-contrast texture's few grey levels still count."""
 GREY_CLIP = 30.0
 """Grey-level residuals beyond the noise are clipped at this."""
 DISTINCT_RATIO = 0.7
@@ -60,10 +62,10 @@ RIVAL_MARGIN = 0.5
 """The best rival must cost more than the best by this share of (median - best): a
 repetitive texture's period, or a symmetric layout, leaves two basins alike, and then the
 sweep says nothing."""
-LANDING_MARGIN = 1e-3
+LANDING_MARGIN = 3e-3
 """Of two poses, the one whose landing cost is lower by less than this does not beat the
-other (`lands_better`): 0.1 % of the points fully off, what the parallax of depth noise
-costs the true pose at a bare wall's colour edges (a pose with no translation has none)."""
+other (`lands_better`): 0.3 % of the points fully off, what the parallax of depth noise
+costs the true pose at a bare wall's shading (a pose with no translation has none)."""
 COARSE_TURN_DEG = 20.0
 """Half-width [deg] of the coarse grid's turn about a free axis: a robot's turn between
 frames, with the last pose's error."""
