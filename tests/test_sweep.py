@@ -2,7 +2,9 @@
 from the colours, never a checkerboard's other period, and no answer where the wall is
 bare (nothing observes the slide). Its cost also chooses among the dense fallback's
 results: a pose that lands clearly better wins, two that a bare wall fits alike do not
-let noise decide."""
+let noise decide. With the floor alone fixing the pose, the grid over the free turn and
+directions offers a robot's step and turn, and the fallback lands it; a robot turning in
+place is landed from the last pose turned as predicted."""
 
 from __future__ import annotations
 
