@@ -291,13 +291,14 @@ class PlaneLandmarks:
         which a caller that adds `FrameMeasurements` only (the backend's process) never
         needs."""
         if self._object_map is None:
+            from planeslam.frontend.objects import DEFAULT_PATTERNS
+
             from .landmark_objects import LandmarkObjectMap
 
             map_config, object_config, patterns = self._object_settings
-            if patterns is None:
-                self._object_map = LandmarkObjectMap(map_config, object_config)
-            else:
-                self._object_map = LandmarkObjectMap(map_config, object_config, patterns)
+            self._object_map = LandmarkObjectMap(
+                map_config, object_config, DEFAULT_PATTERNS if patterns is None else patterns
+            )
         return self._object_map
 
     def objects(self) -> list[LandmarkObject]:

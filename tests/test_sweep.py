@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from planeslam.core.camera import CameraConfig
-from planeslam.core.geometry import rotation_angle
+from planeslam.core.geometry import axis_angle_rotation
 from planeslam.frontend.cloud import PixelRays, organized_cloud
 from planeslam.sim.render import render_frame
 from planeslam.sim.scene_model import Box, Texture, make_scene
@@ -22,6 +22,7 @@ from planeslam.sim.scenes import look_at
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.dense import DenseFallback, smooth_grey
 from planeslam.tracking.estimator import Primitive
+from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.odometry import RgbdOdometry
 from planeslam.tracking.sweep import (
     LastFrame,
@@ -48,10 +49,8 @@ ALONG_FLOOR = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 def _turned(T: np.ndarray, step_m: np.ndarray, turn_deg: float) -> np.ndarray:
     """T_world_cam (4, 4) moved by `step_m` (3,) [m, world] and turned `turn_deg` about the
     vertical through its centre."""
-    a = np.radians(turn_deg)
-    R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
     moved = T.copy()
-    moved[:3, :3] = R @ T[:3, :3]
+    moved[:3, :3] = axis_angle_rotation(VERTICAL, np.radians(turn_deg)) @ T[:3, :3]
     moved[:3, 3] += step_m
     return moved
 
@@ -204,8 +203,8 @@ def _robot_sweep(pattern: str, turn_deg: float) -> tuple[list[np.ndarray], np.nd
 
 
 def _near(T: np.ndarray, truth: np.ndarray, meters: float, degrees: float) -> bool:
-    turn = np.degrees(rotation_angle(T[:3, :3].T @ truth[:3, :3]))
-    return bool(np.linalg.norm(T[:3, 3] - truth[:3, 3]) <= meters and turn <= degrees)
+    m, d = pose_difference(truth, T)
+    return m <= meters and d <= degrees
 
 
 @pytest.mark.parametrize("turn_deg", [-9.0, 3.0, 13.0])

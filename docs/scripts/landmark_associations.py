@@ -23,6 +23,7 @@ import numpy as np
 
 import planeslam.backend.isam2 as isam2
 from planeslam.app.runner import run_sequence
+from planeslam.core.geometry import angle_between, transform_plane
 from planeslam.io.trajectory import read_tum
 
 sequence, out = sys.argv[1], sys.argv[2]
@@ -62,18 +63,17 @@ estimate = backend.estimate
 
 seen: dict[int, list[tuple[int, np.ndarray, float]]] = defaultdict(list)
 for k, planes in observations.items():
-    R, t = truth[k][:3, :3], truth[k][:3, 3]
     for n_cam, d_cam, landmark in planes:
-        n_world = R @ n_cam
-        seen[landmark].append((k, n_world, d_cam - n_world @ t))
+        n_world, d_world = transform_plane(truth[k], n_cam, d_cam)
+        seen[landmark].append((k, n_world, d_world))
 print("plane landmarks: each observation's world plane at the keyframe's true pose")
 for landmark, rows in sorted(seen.items()):
-    normals = np.array([n for _, n, _ in rows])
+    first = rows[0][1]
     offsets = [d for _, _, d in rows]
-    turn = np.degrees(np.arccos(np.clip(normals @ normals[0], -1.0, 1.0))).max()
+    turn = max(np.degrees(angle_between(first, n)) for _, n, _ in rows)
     mixed = max(offsets) - min(offsets) > 0.05 or turn > 5.0
     print(
-        f"p{landmark}: normal {np.round(normals[0], 2)} offsets {np.round(offsets, 3).tolist()} "
+        f"p{landmark}: normal {np.round(first, 2)} offsets {np.round(offsets, 3).tolist()} "
         f"keyframes {[k for k, _, _ in rows]} widest turn {turn:.1f} deg" + (" <<" if mixed else "")
     )
 

@@ -32,6 +32,7 @@ from planeslam.tracking.sweep import (
     landing_cost,
     lands_better,
     sweep_free_motion,
+    sweep_free_translation,
 )
 
 if TYPE_CHECKING:
@@ -192,19 +193,23 @@ class DenseFallback:
         rgbd: RgbdPair | None,
     ) -> list[np.ndarray]:
         """`starts` (4, 4 each; the first with the free directions at the last pose) with
-        the sweep's poses along the directions `registration` left free
-        (`sweep_free_motion`): one free direction's distinct best goes first; the coarse
-        grid's basins (a free turn, or two free directions) go last, so they win only by
-        landing clearly better (on a bare floor any of them lands as well as the last
-        pose). Unchanged without a cloud."""
+        the sweep's poses along the directions `registration` left free: one free direction
+        with the rotation fixed is a line whose distinct best goes first
+        (`sweep_free_translation`); a free turn, or two free directions, a grid whose basins
+        go last (`sweep_free_motion`), so they win only by landing clearly better (on a
+        bare floor any of them lands as well as the last pose). Unchanged without a cloud."""
         if not starts or cloud is None or self.previous_cloud is None or self.camera is None:
             return starts
         grey, last = self._landing_inputs(rgbd)
         axes = registration.unobservable_rotation_axes
         directions = registration.unobservable_translation_dirs
-        swept = sweep_free_motion(starts[0], axes, directions, cloud, grey, last, self.camera)
-        line = not len(axes) and len(directions) == 1
-        return [*swept, *starts] if line else [*starts, *swept]
+        if not len(axes) and len(directions) == 1:
+            found = sweep_free_translation(starts[0], directions[0], cloud, grey, last, self.camera)
+            return starts if found is None else [found, *starts]
+        return [
+            *starts,
+            *sweep_free_motion(starts[0], axes, directions, cloud, grey, last, self.camera),
+        ]
 
     def _landing_inputs(self, rgbd: RgbdPair | None) -> tuple[np.ndarray | None, LastFrame]:
         """This frame's grey levels (None without both frames' colours) and the previous

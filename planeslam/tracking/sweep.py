@@ -134,17 +134,14 @@ def sweep_free_motion(
     world frame, 1 <= L <= 2) where the frame lands well on `last`, best first; none when
     nothing is swept, too few points are valid, or nothing lands distinctly well.
 
-    One free direction alone is `sweep_free_translation`'s line: its one distinct,
-    unrivalled best. A free turn or two free directions are a coarse grid (COARSE_*,
-    every COARSE_STRIDE_PX-th pixel) whose BASINS lowest local minima, distinct from its
-    median, are each refined on a grid of half its spacing (every SWEEP_STRIDE_PX-th
-    pixel). A texture's basin is narrower than the coarse spacing, so these are only
-    starts: the dense methods refine them and the landing cost chooses."""
+    A coarse grid (COARSE_*, every COARSE_STRIDE_PX-th pixel) whose BASINS lowest local
+    minima, distinct from its median, are each refined on a grid of half its spacing
+    (every SWEEP_STRIDE_PX-th pixel). A texture's basin is narrower than the coarse
+    spacing, so these are only starts: the dense methods refine them and the landing cost
+    chooses. (One free direction with the rotation fixed has `sweep_free_translation`'s
+    finer line instead.)"""
     if len(axes) > 1 or not 1 <= len(directions) <= 2:
         return []
-    if not len(axes) and len(directions) == 1:
-        found = sweep_free_translation(T_center, directions[0], cloud, grey, last, camera)
-        return [] if found is None else [found]
     turns = np.radians(np.arange(-COARSE_TURN_DEG, COARSE_TURN_DEG + 1e-9, COARSE_TURN_STEP_DEG))
     shifts = np.arange(-SWEEP_RANGE_M, SWEEP_RANGE_M + 1e-9, COARSE_STEP_M)
     xyz, values = sampled_points(cloud, COARSE_STRIDE_PX, grey)
@@ -153,6 +150,8 @@ def sweep_free_motion(
     grid = [turns] * len(axes) + [shifts] * len(directions)
     poses = _grid_poses(T_center, axes, directions, grid)
     basins = _coarse_basins(_pose_costs(poses, xyz, values, last, camera), [len(g) for g in grid])
+    if not basins:
+        return []
     half = [np.array([-1.0, -0.5, 0.0, 0.5, 1.0]) * (g[1] - g[0]) for g in grid]
     xyz, values = sampled_points(cloud, SWEEP_STRIDE_PX, grey)
     refined = []
