@@ -2,9 +2,10 @@
 from the colours, never a checkerboard's other period, and no answer where the wall is
 bare (nothing observes the slide). Its cost also chooses among the dense fallback's
 results: a pose that lands clearly better wins, two that a bare wall fits alike do not
-let noise decide. With the floor alone fixing the pose, the grid over the free turn and
-directions offers a robot's step and turn, and the fallback lands it; a robot turning in
-place is landed from the last pose turned as predicted."""
+let noise decide (the earliest start's stays, or with a prior, the motion across a robot's
+gap, the one nearest it). With the floor alone fixing the pose, the grid over the free
+turn and directions offers a robot's step and turn, and the fallback lands it; a robot
+turning in place is landed from the last pose turned as predicted."""
 
 from __future__ import annotations
 
@@ -158,15 +159,21 @@ class _ReturnsItsStart:
         return T_prev_cur_init
 
 
-def _dense_choice(pattern: str, true_first: bool) -> tuple[np.ndarray, np.ndarray]:
+def _dense_choice(
+    pattern: str, true_first: bool, prior_by_m: float | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """(the pose the dense fallback takes, the true pose) from two starts: the true pose
-    and one a step further along the wall, the true one first or second."""
+    and one a step further along the wall, the true one first or second; with
+    `prior_by_m`, the prior that decides ties is the true pose moved that much [m] along
+    the wall."""
     previous, current = _frames(pattern)
     dense = DenseFallback(TrackingConfig(icp=False), _ReturnsItsStart(), CAMERA)
     dense.remember(0.0, previous["cloud"], (previous["rgb"], previous["depth"]), previous["T"])
     starts = [current["T"], _slid(current, STEP_M)]
     rgbd = (current["rgb"], current["depth"])
-    taken = dense.register(starts if true_first else starts[::-1], current["cloud"], rgbd, [])
+    prior = None if prior_by_m is None else _slid(current, prior_by_m)
+    ordered = starts if true_first else starts[::-1]
+    taken = dense.register(ordered, current["cloud"], rgbd, [], T_prior=prior)
     assert taken is not None and taken.filled_by is Primitive.ODOMETRY
     return taken.T, current["T"]
 
@@ -183,6 +190,25 @@ def test_the_dense_fallback_keeps_the_first_start_where_nothing_tells_them_apart
     np.testing.assert_allclose(taken, truth, atol=1e-12)
     taken, truth = _dense_choice("none", true_first=False)
     np.testing.assert_allclose(taken[:3, 3] - truth[:3, 3], STEP_M * ALONG_WALL, atol=1e-12)
+
+
+@pytest.mark.parametrize("true_first", [True, False])
+def test_where_nothing_tells_the_results_apart_the_one_nearest_the_prior_is_taken(
+    true_first: bool,
+) -> None:
+    """A bare wall: both land alike, so the result nearest the prior (across a robot's
+    gap, the constant-velocity prediction) is taken, in either order of the starts."""
+    taken, truth = _dense_choice("none", true_first, prior_by_m=0.03)
+    np.testing.assert_allclose(taken, truth, atol=1e-12)
+    taken, truth = _dense_choice("none", true_first, prior_by_m=STEP_M - 0.03)
+    np.testing.assert_allclose(taken[:3, 3] - truth[:3, 3], STEP_M * ALONG_WALL, atol=1e-12)
+
+
+def test_the_prior_does_not_overrule_a_result_that_lands_clearly_better() -> None:
+    """A textured wall and a prior at the overshooting start: the true pose lands clearly
+    better and is taken."""
+    taken, truth = _dense_choice("noise", true_first=False, prior_by_m=STEP_M)
+    np.testing.assert_allclose(taken, truth, atol=1e-12)
 
 
 def _robot_sweep(pattern: str, turn_deg: float) -> tuple[list[np.ndarray], np.ndarray]:

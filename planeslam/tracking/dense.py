@@ -26,6 +26,7 @@ from planeslam.core.geometry import invert_pose, orthonormalize_pose, transform_
 from planeslam.frontend.cloud import sampled_points
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.estimator import Primitive
+from planeslam.tracking.hypotheses import pose_difference
 from planeslam.tracking.registration import RegistrationResult, refine_icp
 from planeslam.tracking.sweep import (
     LastFrame,
@@ -149,16 +150,20 @@ class DenseFallback:
         reasons: list[str],
         slides: Callable[[], bool] = lambda: False,
         keypoints_agree: Callable[[np.ndarray], bool] = lambda T: False,
+        T_prior: np.ndarray | None = None,
     ) -> DensePose | None:
         """RGB-D odometry, then ICP, against the previous frame from each of the (4, 4)
         `starts` (one equal to an earlier start is skipped): per start the first result
         taken (`_acceptable`); of those, the one that lands best on the previous frame
         (`sweep.landing_cost`: depth and grey residuals beyond the noise; a later start must
-        land clearly better, `sweep.lands_better`), or None."""
+        land clearly better, `sweep.lands_better`), or None. With `T_prior` (4, 4), of the
+        results that land about as well as that one (none clearly better), the one nearest
+        T_prior: where the images cannot tell them apart, the motion decides."""
         methods: list[tuple[Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
             methods.append((Primitive.ICP, lambda T0: self._icp(cloud, T0)))
+        landed: list[tuple[float, DensePose]] = []
         best: tuple[float, DensePose] | None = None
         for k, T_start in enumerate(starts):
             if any(np.array_equal(T_start, earlier) for earlier in starts[:k]):
@@ -168,11 +173,14 @@ class DenseFallback:
                 if T is None:
                     continue
                 if self._acceptable(kind, T, cloud, rgbd, reasons, slides, keypoints_agree):
-                    cost = self._landing_cost(cloud, rgbd, T)
-                    if best is None or lands_better(cost, best[0]):
-                        best = (cost, DensePose(T, kind))
+                    landed.append((self._landing_cost(cloud, rgbd, T), DensePose(T, kind)))
+                    if best is None or lands_better(landed[-1][0], best[0]):
+                        best = landed[-1]
                     break
-        return None if best is None else best[1]
+        if best is None or T_prior is None:
+            return None if best is None else best[1]
+        tied = [pose for cost, pose in landed if not lands_better(best[0], cost)]
+        return min(tied, key=lambda pose: pose_difference(T_prior, pose.T))
 
     def unplaced_starts(self, T_pred: np.ndarray) -> list[np.ndarray]:
         """Starts (4, 4) for a frame no plane placed: the prediction T_pred (4, 4), then

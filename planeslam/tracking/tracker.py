@@ -18,8 +18,8 @@ path that gives a pose its evidence supports:
    with the free directions at the previous frame's pose, at the prediction and where a
    sweep over them lands the frame well (`sweep`: a robot's step and turn), or, no plane
    placing the frame, at the prediction and at the last pose turned as predicted and not;
-   the result that lands clearly best on the previous frame is taken (`lands_better`).
-   Keypoints that agree on no pose are no evidence against them.
+   taken: the result landing clearly best (`lands_better`), on ties the first start's, or
+   across a gap the one nearest the prediction; keypoints agreeing on no pose do not veto it.
 4. `relocalised` (`relocalise`): a map-wide search. Right after a tracked frame, among
    the hypotheses a plausible motion reaches (`relocalise_nearby`: no rival within that
    bound; between close frames, the colours must not contradict it); after a loss, over
@@ -310,9 +310,9 @@ class Tracker:
             )
             if good is not None:  # a robot step lies beyond the dense methods' reach
                 starts = self.dense.with_swept(starts, good.registration, cloud, rgbd)
-            dense = self.dense.register(
-                starts, cloud, rgbd, reasons, slides, partial(self._keypoints_agree, keypoints)
-            )
+            agree = partial(self._keypoints_agree, keypoints)
+            prior = None if close else T_pred  # across a gap, the motion decides ties
+            dense = self.dense.register(starts, cloud, rgbd, reasons, slides, agree, prior)
             if dense is not None:
                 return self._completed(
                     frame, view, good, dense.T, dense.filled_by, reasons, keypoints
