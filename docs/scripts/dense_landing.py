@@ -1,0 +1,113 @@
+"""How well the dense fallback's landing cost tells right results from wrong ones, over
+many sequences (docs/experiments.md, "What the landing cost can and cannot tell").
+
+    python docs/scripts/dense_landing.py record SEQUENCE OUT
+    python docs/scripts/dense_landing.py summary OUT [OUT ...]
+
+`record` runs `planeslam run` on the TUM-layout folder SEQUENCE (groundtruth.txt with one
+pose per frame, as `planeslam synth` writes) into OUT and writes OUT/dense.jsonl: per call
+of the dense fallback, every result it accepted as its landing cost and its step error
+against the true step [m], and the error of the result taken. `summary` reads those files:
+the landing costs of right results (error under 3 cm) and wrong ones (over 10 cm), and
+every frame where the result taken was wrong.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def record(sequence: str, out: str) -> None:
+    import planeslam.slam.system as system
+    import planeslam.tracking.dense as dense
+    from planeslam.app.runner import run_sequence
+    from planeslam.core.geometry import invert_pose
+    from planeslam.io.trajectory import read_tum
+    from planeslam.tracking.hypotheses import pose_difference
+
+    truth = list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam)
+    current = {"frame": -1}
+    Path(out).mkdir(parents=True, exist_ok=True)
+    log = open(Path(out) / "dense.jsonl", "w")
+
+    def counting(process):
+        def wrapper(self, *args, **kwargs):
+            current["frame"] += 1
+            return process(self, *args, **kwargs)
+
+        return wrapper
+
+    def step_error(fallback: dense.DenseFallback, T: np.ndarray) -> float:
+        """Error [m] of T (4, 4) as a step from the previous frame's pose."""
+        i = current["frame"]
+        true_step = invert_pose(truth[i - 1]) @ truth[i]
+        return pose_difference(true_step, invert_pose(fallback.previous_pose) @ T)[0]
+
+    def recording_register(register):
+        def wrapper(self, starts, cloud, rgbd, *args, **kwargs):
+            accepted: list[tuple[float, float]] = []
+            acceptable = self._acceptable
+
+            def noting(kind, T, *rest, **kw):
+                ok = acceptable(kind, T, *rest, **kw)
+                if ok:
+                    accepted.append((self._landing_cost(cloud, rgbd, T), step_error(self, T)))
+                return ok
+
+            self._acceptable = noting
+            try:
+                taken = register(self, starts, cloud, rgbd, *args, **kwargs)
+            finally:
+                del self._acceptable
+            if self.previous_pose is not None:
+                error = None if taken is None else step_error(self, taken.T)
+                entry = {"frame": current["frame"], "results": accepted, "taken": error}
+                log.write(json.dumps(entry) + "\n")
+                log.flush()
+            return taken
+
+        return wrapper
+
+    system.SLAM.process = counting(system.SLAM.process)
+    dense.DenseFallback.register = recording_register(dense.DenseFallback.register)
+    run_sequence(sequence, out)
+
+
+def summary(outs: list[str]) -> None:
+    right, wrong, taken_wrong = [], [], []
+    for out in outs:
+        for line in open(Path(out) / "dense.jsonl"):
+            entry = json.loads(line)
+            costs = [(c, e) for c, e in entry["results"] if np.isfinite(c)]
+            right += [c for c, e in costs if e < 0.03]
+            wrong += [c for c, e in costs if e > 0.10]
+            if entry["taken"] is not None and entry["taken"] > 0.10:
+                shown = ", ".join(f"{c:.4f} ({100 * e:.1f} cm)" for c, e in costs)
+                taken_wrong.append(
+                    f"{Path(out).name} frame {entry['frame']}: taken "
+                    f"{100 * entry['taken']:.1f} cm off; results {shown}"
+                )
+    print(f"{len(right)} right results (< 3 cm), {len(wrong)} wrong (> 10 cm)")
+    for q in (50, 90, 99, 100):
+        print(
+            f"  landing cost p{q}: right {np.percentile(right, q):.4f}, "
+            f"wrong {np.percentile(wrong, q):.4f}"
+        )
+    for threshold in (0.01, 0.1, 0.3):
+        print(
+            f"  above {threshold}: right {sum(c > threshold for c in right)}, "
+            f"wrong {sum(c > threshold for c in wrong)}"
+        )
+    print(f"{len(taken_wrong)} frames took a wrong result:")
+    print("\n".join("  " + line for line in taken_wrong))
+
+
+if __name__ == "__main__":
+    if sys.argv[1] == "record":
+        record(sys.argv[2], sys.argv[3])
+    else:
+        summary(sys.argv[2:])
