@@ -19,56 +19,42 @@ import math
 import sys
 
 import numpy as np
+from _run_probe import count_frames, step, step_error_m
 
-import planeslam.slam.system as system
 import planeslam.tracking.dense as dense
 from planeslam.app.runner import run_sequence
-from planeslam.core.geometry import invert_pose, rotation_angle
+from planeslam.core.geometry import rotation_angle
 from planeslam.io.trajectory import read_tum
-from planeslam.tracking.hypotheses import pose_difference
 
 sequence, out = sys.argv[1], sys.argv[2]
 frames = int(sys.argv[3]) if len(sys.argv) > 3 else None
 indices = {int(i) for i in sys.argv[4].split(",")} if len(sys.argv) > 4 else None
 truth = list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam)
-current = {"frame": -1}
+current = count_frames()
 
 
-def _step(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
-    """(4, 4) the motion from T_from to T_to, in T_from's camera frame."""
-    return invert_pose(T_from) @ T_to
-
-
-def _shown_step(step: np.ndarray) -> str:
+def _shown_step(motion: np.ndarray) -> str:
     """A (4, 4) step as its translation [m] and its turn [deg]."""
-    return f"{np.round(step[:3, 3], 3)} {math.degrees(rotation_angle(step[:3, :3])):.1f} deg"
+    turn = math.degrees(rotation_angle(motion[:3, :3]))
+    return f"{np.round(motion[:3, 3], 3)} {turn:.1f} deg"
 
 
 def _described(fallback: dense.DenseFallback, T: np.ndarray) -> str:
     """T (4, 4) as a step from the previous frame's pose, and its error against the truth."""
     i = current["frame"]
     assert fallback.previous_pose is not None
-    estimated = _step(fallback.previous_pose, T)
-    error_m, _ = pose_difference(_step(truth[i - 1], truth[i]), estimated)
-    return f"{_shown_step(estimated)} (error {100 * error_m:.1f} cm)"
+    error_m = step_error_m(truth, i, fallback.previous_pose, T)
+    return f"{_shown_step(step(fallback.previous_pose, T))} (error {100 * error_m:.1f} cm)"
 
 
 def _shown() -> bool:
     return indices is None or current["frame"] in indices
 
 
-def _counting(process):
-    def wrapper(self, *args, **kwargs):
-        current["frame"] += 1
-        return process(self, *args, **kwargs)
-
-    return wrapper
-
-
 def _showing_register(register):
     def wrapper(self, starts, cloud, rgbd, reasons, *args, **kwargs):
         if _shown():
-            true_step = _step(truth[current["frame"] - 1], truth[current["frame"]])
+            true_step = step(truth[current["frame"] - 1], truth[current["frame"]])
             print(f"frame {current['frame']}: true step {_shown_step(true_step)}")
             for T in starts:
                 cost = self._landing_cost(cloud, rgbd, T)
@@ -97,7 +83,6 @@ def _showing_acceptable(acceptable):
     return wrapper
 
 
-system.SLAM.process = _counting(system.SLAM.process)
 dense.DenseFallback.register = _showing_register(dense.DenseFallback.register)
 dense.DenseFallback._acceptable = _showing_acceptable(dense.DenseFallback._acceptable)
 run_sequence(sequence, out, max_frames=frames)

@@ -22,59 +22,46 @@ import numpy as np
 
 
 def record(sequence: str, out: str) -> None:
-    import planeslam.slam.system as system
+    from _run_probe import count_frames, step_error_m
+
     import planeslam.tracking.dense as dense
     from planeslam.app.runner import run_sequence
-    from planeslam.core.geometry import invert_pose
     from planeslam.io.trajectory import read_tum
-    from planeslam.tracking.hypotheses import pose_difference
 
     truth = list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam)
-    current = {"frame": -1}
+    current = count_frames()
+    accepted: list[tuple[float, float]] = []
+    """(landing cost, step error [m]) of each result the call being recorded accepted."""
     Path(out).mkdir(parents=True, exist_ok=True)
-    log = open(Path(out) / "dense.jsonl", "w")
 
-    def counting(process):
-        def wrapper(self, *args, **kwargs):
-            current["frame"] += 1
-            return process(self, *args, **kwargs)
+    def error(fallback: dense.DenseFallback, T: np.ndarray) -> float:
+        return step_error_m(truth, current["frame"], fallback.previous_pose, T)
+
+    def noting(landing_cost):  # `register` asks it of each result it accepted, once
+        def wrapper(self, cloud, rgbd, T):
+            cost = landing_cost(self, cloud, rgbd, T)
+            accepted.append((cost, error(self, T)))
+            return cost
 
         return wrapper
 
-    def step_error(fallback: dense.DenseFallback, T: np.ndarray) -> float:
-        """Error [m] of T (4, 4) as a step from the previous frame's pose."""
-        i = current["frame"]
-        true_step = invert_pose(truth[i - 1]) @ truth[i]
-        return pose_difference(true_step, invert_pose(fallback.previous_pose) @ T)[0]
-
-    def recording_register(register):
-        def wrapper(self, starts, cloud, rgbd, *args, **kwargs):
-            accepted: list[tuple[float, float]] = []
-            acceptable = self._acceptable
-
-            def noting(kind, T, *rest, **kw):
-                ok = acceptable(kind, T, *rest, **kw)
-                if ok:
-                    accepted.append((self._landing_cost(cloud, rgbd, T), step_error(self, T)))
-                return ok
-
-            self._acceptable = noting
-            try:
-                taken = register(self, starts, cloud, rgbd, *args, **kwargs)
-            finally:
-                del self._acceptable
+    def recording(register):
+        def wrapper(self, *args, **kwargs):
+            accepted.clear()
+            taken = register(self, *args, **kwargs)
             if self.previous_pose is not None:
-                error = None if taken is None else step_error(self, taken.T)
-                entry = {"frame": current["frame"], "results": accepted, "taken": error}
+                taken_error = None if taken is None else error(self, taken.T)
+                entry = {"frame": current["frame"], "results": accepted, "taken": taken_error}
                 log.write(json.dumps(entry) + "\n")
                 log.flush()
             return taken
 
         return wrapper
 
-    system.SLAM.process = counting(system.SLAM.process)
-    dense.DenseFallback.register = recording_register(dense.DenseFallback.register)
-    run_sequence(sequence, out)
+    dense.DenseFallback._landing_cost = noting(dense.DenseFallback._landing_cost)
+    dense.DenseFallback.register = recording(dense.DenseFallback.register)
+    with open(Path(out) / "dense.jsonl", "w") as log:
+        run_sequence(sequence, out)
 
 
 def summary(outs: list[str]) -> None:

@@ -16,21 +16,14 @@ import statistics
 import sys
 import time
 
-import planeslam.slam.system as system
+from _run_probe import count_frames
+
 import planeslam.tracking.dense as dense
 from planeslam.app.runner import run_sequence
 
 sequence, out, frames = sys.argv[1], sys.argv[2], int(sys.argv[3])
 indices = {int(i) for i in sys.argv[4].split(",")}
-current = {"frame": -1}
-
-
-def _counting(process):
-    def wrapper(self, *args, **kwargs):
-        current["frame"] += 1
-        return process(self, *args, **kwargs)
-
-    return wrapper
+current = count_frames()
 
 
 def _timing(with_swept):
@@ -63,6 +56,5 @@ def _timing(with_swept):
     return wrapper
 
 
-system.SLAM.process = _counting(system.SLAM.process)
 dense.DenseFallback.with_swept = _timing(dense.DenseFallback.with_swept)
 run_sequence(sequence, out, max_frames=frames)

@@ -173,12 +173,15 @@ class DenseFallback:
                 if T is None:
                     continue
                 if self._acceptable(kind, T, cloud, rgbd, reasons, slides, keypoints_agree):
-                    landed.append((self._landing_cost(cloud, rgbd, T), DensePose(T, kind)))
-                    if best is None or lands_better(landed[-1][0], best[0]):
+                    cost = self._landing_cost(cloud, rgbd, T)
+                    landed.append((cost, DensePose(T, kind)))
+                    if best is None or lands_better(cost, best[0]):
                         best = landed[-1]
                     break
-        if best is None or T_prior is None:
-            return None if best is None else best[1]
+        if best is None:
+            return None
+        if T_prior is None:
+            return best[1]
         tied = [pose for cost, pose in landed if not lands_better(best[0], cost)]
         return min(tied, key=lambda pose: pose_difference(T_prior, pose.T))
 
