@@ -19,7 +19,6 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from planeslam.core.camera import CameraConfig, nearest_pixels
 from planeslam.core.errors import GeometryError
@@ -159,9 +158,7 @@ class DenseFallback:
         (`sweep.landing_cost`: depth and grey residuals beyond the noise; a later start must
         land clearly better, `sweep.lands_better`), or None. With `T_prior` (4, 4), of the
         results that land about as well as that one (none clearly better), the one nearest
-        T_prior, or nearer still the pose between two of them nearest T_prior when it lands
-        as well and is accepted: where the images cannot tell them apart, the motion
-        decides."""
+        T_prior: where the images cannot tell them apart, the motion decides."""
         methods: list[tuple[Primitive, Callable[[np.ndarray], np.ndarray | None]]]
         methods = [(Primitive.ODOMETRY, lambda T0: self._rgbd(rgbd, T0))]
         if cloud is not None:
@@ -186,18 +183,7 @@ class DenseFallback:
         if T_prior is None:
             return best[1]
         tied = [pose for cost, pose in landed if not lands_better(best[0], cost)]
-        nearest = min(tied, key=lambda pose: pose_difference(T_prior, pose.T))
-        between = _between_nearest(T_prior, [pose.T for pose in tied])
-        if between is None or not pose_difference(T_prior, between) < pose_difference(
-            T_prior, nearest.T
-        ):
-            return nearest
-        kind = nearest.filled_by
-        if lands_better(best[0], self._landing_cost(cloud, rgbd, between)):
-            return nearest
-        if not self._acceptable(kind, between, cloud, rgbd, [], slides, keypoints_agree):
-            return nearest
-        return DensePose(between, kind)
+        return min(tied, key=lambda pose: pose_difference(T_prior, pose.T))
 
     def unplaced_starts(self, T_pred: np.ndarray) -> list[np.ndarray]:
         """Starts (4, 4) for a frame no plane placed: the prediction T_pred (4, 4), then
@@ -390,28 +376,6 @@ class DenseFallback:
             invert_pose(self.previous_pose) @ T_world_cam_init,
         )
         return None if T_prev_cur is None else self.previous_pose @ T_prev_cur
-
-
-def _between_nearest(T_prior: np.ndarray, poses: list[np.ndarray]) -> np.ndarray | None:
-    """The pose (4, 4) nearest T_prior (4, 4) on the straight paths between any two of
-    `poses` (each (4, 4); translation projected, rotation interpolated at the same
-    fraction), or None for fewer than two. Results that land alike spread along a
-    direction the images leave free; the prior's place on it beats the nearest end."""
-    found: np.ndarray | None = None
-    for i, T_a in enumerate(poses):
-        for T_b in poses[i + 1 :]:
-            span = T_b[:3, 3] - T_a[:3, 3]
-            length2 = float(span @ span)
-            if length2 == 0.0:
-                continue
-            s = float(np.clip((T_prior[:3, 3] - T_a[:3, 3]) @ span / length2, 0.0, 1.0))
-            turn = Rotation.from_matrix(T_a[:3, :3].T @ T_b[:3, :3]).as_rotvec()
-            T = np.eye(4)
-            T[:3, :3] = T_a[:3, :3] @ Rotation.from_rotvec(s * turn).as_matrix()
-            T[:3, 3] = T_a[:3, 3] + s * span
-            if found is None or pose_difference(T_prior, T) < pose_difference(T_prior, found):
-                found = T
-    return found
 
 
 def smooth_grey(rgb: np.ndarray) -> np.ndarray:

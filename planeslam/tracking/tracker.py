@@ -19,7 +19,7 @@ path that gives a pose its evidence supports:
    sweep over them lands the frame well (`sweep`: a robot's step and turn), or, no plane
    placing the frame, at the prediction and at the last pose turned as predicted and not;
    taken: the result landing clearly best (`lands_better`), on ties the first start's, or
-   across a gap the pose on or between them nearest the prediction; keypoints do not veto.
+   across a gap the one nearest the prediction; keypoints agreeing on no pose do not veto it.
 4. `relocalised` (`relocalise`): a map-wide search. Right after a tracked frame, among
    the hypotheses a plausible motion reaches (`relocalise_nearby`: no rival within that
    bound; between close frames, the colours must not contradict it); after a loss, over
