@@ -80,10 +80,8 @@ def summary(outs: list[str]) -> None:
                 )
     print(f"{len(right)} right results (< 3 cm), {len(wrong)} wrong (> 10 cm)")
     for q in (50, 90, 99, 100):
-        print(
-            f"  landing cost p{q}: right {np.percentile(right, q):.4f}, "
-            f"wrong {np.percentile(wrong, q):.4f}"
-        )
+        shown = [f"{np.percentile(c, q):.4f}" if c else "-" for c in (right, wrong)]
+        print(f"  landing cost p{q}: right {shown[0]}, wrong {shown[1]}")
     for threshold in (0.01, 0.1, 0.3):
         print(
             f"  above {threshold}: right {sum(c > threshold for c in right)}, "
@@ -94,7 +92,9 @@ def summary(outs: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    if sys.argv[1] == "record":
+    if len(sys.argv) == 4 and sys.argv[1] == "record":
         record(sys.argv[2], sys.argv[3])
-    else:
+    elif len(sys.argv) > 2 and sys.argv[1] == "summary":
         summary(sys.argv[2:])
+    else:
+        sys.exit(__doc__)

@@ -264,17 +264,22 @@ def point_segment_distance(point: np.ndarray, segment: np.ndarray) -> float:
 
 
 def convex_hull_2d(points_uv: np.ndarray) -> np.ndarray:
-    """Counter-clockwise hull vertices (H, 2) of (K, 2) points; (0, 2) when they span no
-    area (fewer than 3, collinear or coincident)."""
-    from scipy.spatial import ConvexHull, QhullError
+    """Counter-clockwise hull vertices (H, 2) of (K, 2) points, rows of `points_uv`; (0, 2)
+    when they span no area (fewer than 3, collinear or coincident, to float32 precision).
+    OpenCV's hull decides on float32 coordinates about the first point (a few microseconds
+    where Qhull's set-up takes about a hundred): a point within about 1e-7 of the points'
+    extent of the hull's edge may be a vertex or not."""
+    import cv2
 
-    if len(points_uv) < 3:
+    points = np.asarray(points_uv, dtype=np.float64)
+    if len(points) < 3:
         return np.zeros((0, 2))
-    try:
-        hull = ConvexHull(points_uv)
-    except QhullError:
+    local = (points - points[0]).astype(np.float32)
+    index = cv2.convexHull(local, clockwise=False, returnPoints=False)[:, 0]
+    extent = float(np.abs(local).max())
+    if len(index) < 3 or cv2.contourArea(local[index]) <= 1e-6 * extent * extent:
         return np.zeros((0, 2))
-    return points_uv[hull.vertices]  # scipy gives 2-D hull vertices counter-clockwise
+    return points[index]
 
 
 def polygon_area(polygon_uv: np.ndarray) -> float:
