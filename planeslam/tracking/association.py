@@ -311,7 +311,7 @@ def outline_overlap(outline_a: np.ndarray, outline_b: np.ndarray, n: np.ndarray,
     """Overlap in [0, 1] of two plane outlines (K, 3), (L, 3) [m] on the plane (n, d).
 
     Both are projected orthogonally onto the plane (2-D coordinates about
-    its foot point -d n), replaced by their convex hulls (scipy/Qhull) and
+    its foot point -d n), replaced by their convex hulls (`convex_hull_2d`) and
     intersected by Sutherland-Hodgman clipping in float64; the result is
     intersection area / smaller hull area. Convex hulls make it exact for
     convex regions (wall, table top, box face) and an over-estimate for
