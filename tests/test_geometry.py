@@ -19,16 +19,15 @@ def test_the_hull_is_qhulls_counter_clockwise_ring_of_the_same_points() -> None:
         k = int(rng.integers(3, 300))
         points = rng.normal(size=(k, 2)) * rng.uniform(0.01, 5.0) + rng.normal(size=2) * 3.0
         ring = convex_hull_2d(points)
-        expected = points[ConvexHull(points).vertices]
+        qhull = ConvexHull(points)
+        expected = points[qhull.vertices]
         assert {tuple(p) for p in ring} == {tuple(p) for p in expected}
         assert len(ring) == len(expected)
         edges = np.roll(ring, -1, axis=0) - ring
-        turns = (
-            edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1]
-            - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
-        )
+        following = np.roll(edges, -1, axis=0)
+        turns = edges[:, 0] * following[:, 1] - edges[:, 1] * following[:, 0]
         assert np.all(turns > 0)
-        assert polygon_area(ring) == pytest.approx(ConvexHull(points).volume, rel=1e-12)
+        assert polygon_area(ring) == pytest.approx(qhull.volume, rel=1e-12)
 
 
 def test_points_on_a_hull_edge_are_not_vertices() -> None:

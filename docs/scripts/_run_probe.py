@@ -1,13 +1,27 @@
-"""Shared by the scripts that watch a run from inside (dense_choices.py, dense_landing.py,
-sweep_timing.py): which frame is being processed, and the true step it makes."""
+"""Shared by the scripts that watch a run from inside: which frame is being processed and
+the true step it makes (dense_choices.py, dense_landing.py, sweep_timing.py); a stage's
+CPU time over a whole run timed as `planeslam bench speed` times it (fused_cloud_cpu.py,
+map_merge_cpu.py); the modules that call `convex_hull_2d` (map_merge_cpu.py,
+hull_timing.py)."""
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
 import numpy as np
 
+import planeslam.mapping.seating as seating
 import planeslam.slam.system as system
+import planeslam.tracking.association as association
 from planeslam.core.geometry import invert_pose
 from planeslam.tracking.hypotheses import pose_difference
+
+HULL_CALLERS = (seating, association)
+"""The modules whose `convex_hull_2d` a run calls: the map merge's outlines and plane
+association's overlap. Replace it on each to watch every hull."""
 
 
 def count_frames() -> dict[str, int]:
@@ -33,3 +47,28 @@ def step_error_m(truth: list[np.ndarray], i: int, T_previous: np.ndarray, T: np.
     """Error [m] of T (4, 4) as frame i's step from T_previous (4, 4), against the true step
     between the (4, 4) poses truth[i - 1] and truth[i]."""
     return pose_difference(step(truth[i - 1], truth[i]), step(T_previous, T))[0]
+
+
+def thread_cpu(function: Callable[..., Any], spent: dict[str, float], figure: str):
+    """`function` wrapped to add the CPU time of its calling thread (`time.thread_time`)
+    to spent[figure] [s]."""
+
+    def wrapper(*args, **kwargs):
+        start = time.thread_time()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            spent[figure] += time.thread_time() - start
+
+    return wrapper
+
+
+def time_whole_run(argv: Sequence[str], default_frames: int) -> tuple[float, int, float]:
+    """The whole system on argv's [DATASET] [FRAMES] (default the 7-Scenes clip beside the
+    checkout and `default_frames`), timed as `planeslam bench speed` times it: (wall
+    seconds, frames, CPU seconds of this process and the backend worker)."""
+    from planeslam.app.bench_speed import _open_source, _time_whole_system
+
+    dataset = Path(argv[1] if len(argv) > 1 else "../shared/data/7scenes_redkitchen_1000f")
+    frames = int(argv[2]) if len(argv) > 2 else default_frames
+    return _time_whole_system(_open_source(dataset, frames, None, ()))

@@ -16,10 +16,9 @@ import sys
 import time
 
 import numpy as np
+from _run_probe import HULL_CALLERS
 from scipy.spatial import ConvexHull, QhullError
 
-import planeslam.mapping.seating as seating
-import planeslam.tracking.association as association
 from planeslam.app.runner import run_sequence
 from planeslam.core.geometry import convex_hull_2d
 
@@ -45,8 +44,8 @@ def keeping(points_uv: np.ndarray) -> np.ndarray:
     return convex_hull_2d(points_uv)
 
 
-seating.convex_hull_2d = keeping
-association.convex_hull_2d = keeping
+for caller in HULL_CALLERS:
+    caller.convex_hull_2d = keeping
 run_sequence(dataset, out, max_frames=frames)
 
 spent: dict[str, list[float]] = {"qhull": [], "opencv": []}

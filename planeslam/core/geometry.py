@@ -269,7 +269,7 @@ def convex_hull_2d(points_uv: np.ndarray) -> np.ndarray:
     OpenCV's hull decides on float32 coordinates about the first point (a few microseconds
     where Qhull's set-up takes about a hundred): a point within about 1e-7 of the points'
     extent of the hull's edge may be a vertex or not."""
-    import cv2
+    import cv2  # here, not at the top: the backend worker process imports no OpenCV
 
     points = np.asarray(points_uv, dtype=np.float64)
     if len(points) < 3:
