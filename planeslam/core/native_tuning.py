@@ -1,13 +1,16 @@
 """Process-wide settings of native libraries, applied only where a caller asks.
 
 `single_native_threads`: one thread for each native library's pool (OpenCV, BLAS,
-OpenMP) within a block, restored afterwards. `keep_freed_memory`: a glibc
+OpenMP, Open3D's TBB) within a block, restored afterwards. `keep_freed_memory`: a glibc
 allocator setting for the whole process; the CLI turns it on, the library never does.
 
 The pipeline brings its own parallelism: frames are read on a thread and the iSAM2
 backend runs in a process. Native pools that spread each call over both cores then
 fight those for them: beside a busy process, 60 7-Scenes frames took the front end
 3.3 s with the default pools and 0.65-0.93 s with one thread each (0.62 s alone).
+One thread also makes a run repeat: Open3D's RGB-D odometry (the dense fallback) sums
+its normal equations over TBB threads in whatever order they finish, so two runs of
+one sequence parted in the last bit and, where tracking decides a tie, by centimetres.
 """
 
 from __future__ import annotations
@@ -23,18 +26,34 @@ log = logging.getLogger(__name__)
 
 @contextlib.contextmanager
 def single_native_threads() -> Iterator[None]:
-    """Within the block, OpenCV and every pool threadpoolctl knows (OpenBLAS, MKL,
-    OpenMP) use one thread; the previous settings come back afterwards."""
+    """Within the block, OpenCV, Open3D (when imported) and every pool threadpoolctl
+    knows (OpenBLAS, MKL, OpenMP) use one thread; the previous settings come back
+    afterwards. Open3D is not imported here: the backend worker never loads it."""
     import cv2
     from threadpoolctl import threadpool_limits
 
     before = cv2.getNumThreads()
     cv2.setNumThreads(1)
+    open3d_threads = _open3d_max_threads(1)
     try:
         with threadpool_limits(limits=1):
             yield
     finally:
         cv2.setNumThreads(before)
+        if open3d_threads is not None:
+            _open3d_max_threads(open3d_threads)
+
+
+def _open3d_max_threads(limit: int) -> int | None:
+    """Set Open3D's thread limit (`open3d.utility.set_max_threads`, Open3D >= 0.20) when
+    Open3D is imported; returns the limit before, or None when not imported or too old."""
+    o3d = sys.modules.get("open3d")
+    utility = getattr(o3d, "utility", None)
+    if utility is None or not hasattr(utility, "set_max_threads"):
+        return None
+    before = int(utility.get_max_threads())
+    utility.set_max_threads(limit)
+    return before
 
 
 _MALLOC_TUNED = False
