@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from planeslam.core.errors import EvaluationError
+from planeslam.core.native_tuning import single_native_threads
 from planeslam.io.sequence import RgbdDataset
 from planeslam.io.trajectory import Trajectory
 from planeslam.tracking.odometry import RgbdOdometry
@@ -48,7 +49,8 @@ def run_open3d_odometry(
     from the first ground-truth pose (identity without ground truth). A failed registration
     repeats the previous relative motion (constant velocity; identity for the first) and
     counts as lost (see `registration_ok`). `on_pose(timestamp, T_world_cam)` is called for
-    every pose as it is estimated (e.g. `TumWriter.write`).
+    every pose as it is estimated (e.g. `TumWriter.write`). Native pools run one thread
+    each, as in a planeslam run, so a run's figures repeat (`single_native_threads`).
     """
     if every < 1:
         raise EvaluationError(f"every must be >= 1, got {every}")
@@ -56,7 +58,17 @@ def run_open3d_odometry(
         raise EvaluationError(f"max_frames must be >= 1, got {max_frames}")
     indices = list(range(0, len(dataset), every))[:max_frames]
     odometry = RgbdOdometry(dataset.camera, depth_trunc_m, depth_diff_max_m)
+    with single_native_threads():
+        return _chain_motions(dataset, indices, odometry, on_pose)
 
+
+def _chain_motions(
+    dataset: RgbdDataset,
+    indices: list[int],
+    odometry: RgbdOdometry,
+    on_pose: Callable[[float, np.ndarray], None] | None,
+) -> BaselineResult:
+    """`run_open3d_odometry`'s loop over the frames `indices` of `dataset`."""
     stamps: list[float] = []
     poses: list[np.ndarray] = []
     timings: list[dict[str, float]] = []
