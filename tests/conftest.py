@@ -27,7 +27,7 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     `@pytest.mark.integration`, which wins (`make test-fast` selects "unit and not
     integration"). A module without a tier is an error, so none falls out of both."""
     untiered = sorted(
-        {item.path.name for item in items if not any(item.iter_markers(n) for n in TIERS)}
+        {item.path.name for item in items if not any(item.get_closest_marker(n) for n in TIERS)}
     )
     if untiered:
         raise pytest.UsageError(

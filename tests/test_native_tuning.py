@@ -6,10 +6,13 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import open3d as o3d
+import pytest
 
 from planeslam.core.camera import CameraConfig
 from planeslam.core.native_tuning import single_native_threads
 from planeslam.tracking.odometry import RgbdOdometry
+
+pytestmark = pytest.mark.unit
 
 
 def test_one_thread_inside_the_block_and_the_previous_settings_after() -> None:
