@@ -1,27 +1,77 @@
-"""Shared by the scripts that watch a run from inside: which frame is being processed and
-the true step it makes (dense_choices.py, dense_landing.py, sweep_timing.py); a stage's
-CPU time over a whole run timed as `planeslam bench speed` times it (fused_cloud_cpu.py,
+"""Shared by the scripts that watch a run from inside: their arguments and the truth
+(`watched_run`: dense_choices.py, plane_pairs.py), which frame is being processed and the
+true step it makes (dense_choices.py, dense_landing.py, sweep_timing.py); a stage's CPU
+time over a whole run timed as `planeslam bench speed` times it (fused_cloud_cpu.py,
 map_merge_cpu.py); the modules that call `convex_hull_2d` (map_merge_cpu.py,
-hull_timing.py)."""
+hull_timing.py); the first frames of a sequence (`first_frames`: open3d_threads.py,
+tensor_odometry.py)."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
 import planeslam.mapping.seating as seating
 import planeslam.slam.system as system
 import planeslam.tracking.association as association
+from planeslam.config import open_configured, resolve_config
+from planeslam.core.camera import CameraConfig
 from planeslam.core.geometry import invert_pose
+from planeslam.io.dataset import Frame
+from planeslam.io.sequence import RgbdDataset
+from planeslam.io.trajectory import read_tum
 from planeslam.tracking.hypotheses import pose_difference
+
+SEVEN_SCENES = "../shared/data/7scenes_redkitchen_1000f"
+"""The default sequence of the timing scripts (beside the checkout)."""
 
 HULL_CALLERS = (seating, association)
 """The modules whose `convex_hull_2d` a run calls: the map merge's outlines and plane
 association's overlap. Replace it on each to watch every hull."""
+
+
+class WatchedRun(NamedTuple):
+    """A watched run's arguments, SEQUENCE OUT [FRAMES] [INDICES], and its truth."""
+
+    sequence: str
+    out: str
+    frames: int | None
+    """The first FRAMES frames (None: all)."""
+    indices: set[int] | None
+    """The frames to show (None: every one)."""
+    truth: list[np.ndarray]
+    """(4, 4) true T_world_cam per frame, from SEQUENCE's groundtruth.txt."""
+
+    def shown(self, frame: int) -> bool:
+        return self.indices is None or frame in self.indices
+
+
+def watched_run(argv: Sequence[str]) -> WatchedRun:
+    """argv's SEQUENCE OUT [FRAMES] [INDICES (comma-separated)] and SEQUENCE's truth (one
+    pose per frame, as `planeslam synth` writes)."""
+    sequence, out = argv[1], argv[2]
+    return WatchedRun(
+        sequence,
+        out,
+        int(argv[3]) if len(argv) > 3 else None,
+        {int(i) for i in argv[4].split(",")} if len(argv) > 4 else None,
+        list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam),
+    )
+
+
+def first_frames(
+    argv: Sequence[str], default_count: int
+) -> tuple[RgbdDataset, CameraConfig, list[Frame]]:
+    """argv's [DATASET] [PAIRS] (default SEVEN_SCENES and `default_count`): the dataset
+    (read with its guessed config), its camera and its first PAIRS + 1 frames."""
+    path = Path(argv[1] if len(argv) > 1 else SEVEN_SCENES)
+    count = int(argv[2]) if len(argv) > 2 else default_count
+    dataset, config = open_configured(path, resolve_config(path))
+    return dataset, config.camera, [dataset[i] for i in range(count + 1)]
 
 
 def count_frames() -> dict[str, int]:
@@ -69,6 +119,6 @@ def time_whole_run(argv: Sequence[str], default_frames: int) -> tuple[float, int
     seconds, frames, CPU seconds of this process and the backend worker)."""
     from planeslam.app.bench_speed import _open_source, _time_whole_system
 
-    dataset = Path(argv[1] if len(argv) > 1 else "../shared/data/7scenes_redkitchen_1000f")
+    dataset = Path(argv[1] if len(argv) > 1 else SEVEN_SCENES)
     frames = int(argv[2]) if len(argv) > 2 else default_frames
     return _time_whole_system(_open_source(dataset, frames, None, ()))

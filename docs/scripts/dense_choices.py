@@ -19,17 +19,13 @@ import math
 import sys
 
 import numpy as np
-from _run_probe import count_frames, step, step_error_m
+from _run_probe import count_frames, step, step_error_m, watched_run
 
 import planeslam.tracking.dense as dense
 from planeslam.app.runner import run_sequence
 from planeslam.core.geometry import rotation_angle
-from planeslam.io.trajectory import read_tum
 
-sequence, out = sys.argv[1], sys.argv[2]
-frames = int(sys.argv[3]) if len(sys.argv) > 3 else None
-indices = {int(i) for i in sys.argv[4].split(",")} if len(sys.argv) > 4 else None
-truth = list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam)
+run = watched_run(sys.argv)
 current = count_frames()
 
 
@@ -43,18 +39,18 @@ def _described(fallback: dense.DenseFallback, T: np.ndarray) -> str:
     """T (4, 4) as a step from the previous frame's pose, and its error against the truth."""
     i = current["frame"]
     assert fallback.previous_pose is not None
-    error_m = step_error_m(truth, i, fallback.previous_pose, T)
+    error_m = step_error_m(run.truth, i, fallback.previous_pose, T)
     return f"{_shown_step(step(fallback.previous_pose, T))} (error {100 * error_m:.1f} cm)"
 
 
 def _shown() -> bool:
-    return indices is None or current["frame"] in indices
+    return run.shown(current["frame"])
 
 
 def _showing_register(register):
     def wrapper(self, starts, cloud, rgbd, reasons, *args, **kwargs):
         if _shown():
-            true_step = step(truth[current["frame"] - 1], truth[current["frame"]])
+            true_step = step(run.truth[current["frame"] - 1], run.truth[current["frame"]])
             print(f"frame {current['frame']}: true step {_shown_step(true_step)}")
             for T in starts:
                 cost = self._landing_cost(cloud, rgbd, T)
@@ -85,4 +81,4 @@ def _showing_acceptable(acceptable):
 
 dense.DenseFallback.register = _showing_register(dense.DenseFallback.register)
 dense.DenseFallback._acceptable = _showing_acceptable(dense.DenseFallback._acceptable)
-run_sequence(sequence, out, max_frames=frames)
+run_sequence(run.sequence, run.out, max_frames=run.frames)

@@ -16,7 +16,7 @@ import sys
 import time
 
 import numpy as np
-from _run_probe import HULL_CALLERS
+from _run_probe import HULL_CALLERS, SEVEN_SCENES
 from scipy.spatial import ConvexHull, QhullError
 
 from planeslam.app.runner import run_sequence
@@ -33,7 +33,7 @@ def qhull_2d(points_uv: np.ndarray) -> np.ndarray:
         return np.zeros((0, 2))
 
 
-dataset = sys.argv[1] if len(sys.argv) > 1 else "../shared/data/7scenes_redkitchen_1000f"
+dataset = sys.argv[1] if len(sys.argv) > 1 else SEVEN_SCENES
 frames = int(sys.argv[2]) if len(sys.argv) > 2 else 100
 out = sys.argv[3] if len(sys.argv) > 3 else "out/hull_timing"
 asked: list[np.ndarray] = []

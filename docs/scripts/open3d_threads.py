@@ -18,12 +18,11 @@ import os
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from _run_probe import first_frames
 
-from planeslam.config import open_configured, resolve_config
 from planeslam.tracking.odometry import RgbdOdometry
 
 
@@ -43,14 +42,13 @@ def _timed(odometry: RgbdOdometry, pairs: list, threads: int) -> tuple[float, fl
 
 
 def main() -> None:
-    path = Path(sys.argv[1] if len(sys.argv) > 1 else "../shared/data/7scenes_redkitchen_1000f")
-    count = int(sys.argv[2]) if len(sys.argv) > 2 else 30
-    dataset, config = open_configured(path, resolve_config(path))
-    odometry = RgbdOdometry(config.camera)
-    images = [odometry.image(f.rgb, f.depth_m) for f in (dataset[i] for i in range(count + 1))]
+    dataset, camera, frames = first_frames(sys.argv, 30)
+    count = len(frames) - 1
+    odometry = RgbdOdometry(camera)
+    images = [odometry.image(f.rgb, f.depth_m) for f in frames]
     pairs = list(zip(images[1:], images[:-1], strict=True))
     cpus = len(os.sched_getaffinity(0))
-    print(f"{path.name}: {count} pairs, {cpus} CPUs, load average {os.getloadavg()[0]:.2f}")
+    print(f"{dataset.root.name}: {count} pairs, {cpus} CPUs, load average {os.getloadavg()[0]:.2f}")
     for beside in ("alone", "beside a busy core"):
         stop = multiprocessing.Event()
         spinner = None

@@ -17,17 +17,14 @@ from __future__ import annotations
 import math
 import sys
 
-from _run_probe import count_frames
+from _run_probe import count_frames, watched_run
 
 import planeslam.tracking.plane_path as plane_path
 from planeslam.app.runner import run_sequence
-from planeslam.io.trajectory import read_tum
+from planeslam.core.geometry import angle_between, transform_plane
 from planeslam.tracking.hypotheses import pose_difference
 
-sequence, out = sys.argv[1], sys.argv[2]
-frames = int(sys.argv[3]) if len(sys.argv) > 3 else None
-indices = {int(i) for i in sys.argv[4].split(",")} if len(sys.argv) > 4 else None
-truth = list(read_tum(f"{sequence}/groundtruth.txt").T_world_cam)
+run = watched_run(sys.argv)
 current = count_frames()
 
 
@@ -35,20 +32,18 @@ def _showing_register(register):
     def wrapper(self, frame, view, T_pred):
         solved = register(self, frame, view, T_pred)
         i = current["frame"]
-        if solved is None or (indices is not None and i not in indices):
+        if solved is None or not run.shown(i):
             return solved
         reg = solved.registration
-        metres, degrees = pose_difference(truth[i], solved.T)
-        pred_m, pred_deg = pose_difference(truth[i], T_pred)
+        metres, degrees = pose_difference(run.truth[i], solved.T)
+        pred_m, pred_deg = pose_difference(run.truth[i], T_pred)
         print(
             f"frame {i}: pose off {100 * metres:.2f} cm {degrees:.2f} deg, prediction off "
             f"{100 * pred_m:.2f} cm {pred_deg:.2f} deg"
         )
-        R, t = truth[i][:3, :3], truth[i][:3, 3]
         for k, (f, m) in enumerate(solved.association.planes):
-            n_world = R @ frame.normals[f]
-            d_world = frame.d[f] - n_world @ t
-            tilt = math.degrees(math.acos(min(1.0, abs(float(n_world @ view.normals[m])))))
+            n_world, d_world = transform_plane(run.truth[i], frame.normals[f], frame.d[f])
+            tilt = math.degrees(angle_between(n_world, view.normals[m]))
             print(
                 f"  frame plane {f} -> map plane {m}: residual "
                 f"{math.degrees(reg.plane_angle_residual_rad[k]):.2f} deg "
@@ -61,4 +56,4 @@ def _showing_register(register):
 
 
 plane_path.PlanePath.register = _showing_register(plane_path.PlanePath.register)
-run_sequence(sequence, out, max_frames=frames)
+run_sequence(run.sequence, run.out, max_frames=run.frames)

@@ -16,21 +16,16 @@ from __future__ import annotations
 import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import open3d as o3d
+from _run_probe import first_frames, step
 
-from planeslam.config import open_configured, resolve_config
-from planeslam.core.geometry import invert_pose
 from planeslam.tracking.odometry import RgbdOdometry
 
-path = Path(sys.argv[1] if len(sys.argv) > 1 else "../shared/data/7scenes_redkitchen_1000f")
-count = int(sys.argv[2]) if len(sys.argv) > 2 else 30
 o3d.utility.set_max_threads(1)
-dataset, config = open_configured(path, resolve_config(path))
-camera = config.camera
-frames = [dataset[i] for i in range(count + 1)]
+dataset, camera, frames = first_frames(sys.argv, 30)
+count = len(frames) - 1
 legacy = RgbdOdometry(camera)
 legacy_images = [legacy.image(f.rgb, f.depth_m) for f in frames]
 tensor_images = [
@@ -65,7 +60,7 @@ def legacy_motion(i: int) -> np.ndarray | None:
     return legacy.motion(legacy_images[i + 1], legacy_images[i])
 
 
-print(f"{path.name}: {count} pairs, one thread")
+print(f"{dataset.root.name}: {count} pairs, one thread")
 for name, motion in (("legacy", legacy_motion), ("tensor", tensor_motion)):
     rounds, motions = [], []
     for _ in range(3):
@@ -79,7 +74,7 @@ for name, motion in (("legacy", legacy_motion), ("tensor", tensor_motion)):
         T_a = dataset.groundtruth_pose(frames[i].timestamp)
         T_b = dataset.groundtruth_pose(frames[i + 1].timestamp)
         assert T_a is not None and T_b is not None, "needs ground truth"
-        errors.append(float(np.linalg.norm(T[:3, 3] - (invert_pose(T_a) @ T_b)[:3, 3])))
+        errors.append(float(np.linalg.norm(T[:3, 3] - step(T_a, T_b)[:3, 3])))
     print(
         f"  {name}: {', '.join(f'{r:.1f}' for r in rounds)} ms CPU per call "
         f"(median {statistics.median(rounds):.1f}); median step error "
