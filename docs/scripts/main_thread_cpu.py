@@ -1,0 +1,65 @@
+"""The main thread's CPU per frame in each part of `SLAM.process` during a CLI command
+(docs/speed.md, "The front end in its own process").
+
+    python docs/scripts/main_thread_cpu.py -q run DATASET --max-frames 300 --out OUT
+
+Runs `planeslam` with the given arguments in this process, with the front end, tracking,
+keyframes (and `Map.merge` within them), the backend's update and the smaller parts
+timed by `time.thread_time` (the main thread's CPU, not the wait for a core or the
+GIL), and prints each part's milliseconds per processed frame.
+"""
+
+from __future__ import annotations
+
+import collections
+import functools
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+from planeslam.app.cli import main
+from planeslam.frontend.pipeline import FrontEnd
+from planeslam.mapping.world_map import Map
+from planeslam.slam.system import SLAM
+from planeslam.tracking.tracker import Tracker
+
+SECONDS: collections.Counter[str] = collections.Counter()
+CALLS: collections.Counter[str] = collections.Counter()
+
+
+def _timed(cls: type, name: str, label: str) -> None:
+    method: Callable[..., Any] = getattr(cls, name)
+
+    @functools.wraps(method)
+    def timed(*args: Any, **kwargs: Any) -> Any:
+        t0 = time.thread_time()
+        try:
+            return method(*args, **kwargs)
+        finally:
+            SECONDS[label] += time.thread_time() - t0
+            CALLS[label] += 1
+
+    setattr(cls, name, timed)
+
+
+if __name__ == "__main__":
+    for cls, name, label in (
+        (SLAM, "process", "SLAM.process (all)"),
+        (FrontEnd, "process", "front end"),
+        (Tracker, "track", "tracking"),
+        (SLAM, "_add_keyframe", "keyframes"),
+        (Map, "merge", "  of which Map.merge"),
+        (SLAM, "_apply_update", "backend update"),
+        (SLAM, "map_view", "map view"),
+        (SLAM, "_pose_covariance", "pose covariance"),
+    ):
+        _timed(cls, name, label)
+    try:
+        main(sys.argv[1:])
+    except SystemExit as exc:
+        if exc.code:
+            raise
+    frames = max(CALLS["SLAM.process (all)"], 1)
+    for label, seconds in SECONDS.most_common():
+        print(f"{label:22s} {1e3 * seconds / frames:6.2f} ms/frame ({CALLS[label]} calls)")
