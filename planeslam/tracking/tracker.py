@@ -310,6 +310,8 @@ class Tracker:
             )
             if good is not None:  # a robot step lies beyond the dense methods' reach
                 starts = self.dense.with_swept(starts, good.registration, cloud, rgbd)
+            if weak:  # a direction the planes fix only weakly: the prediction's is as good
+                starts.append(T_pred)
             agree = partial(self._keypoints_agree, keypoints)
             prior = None if close else T_pred  # across a gap, the motion decides ties
             dense = self.dense.register(starts, cloud, rgbd, reasons, slides, agree, prior)
