@@ -310,8 +310,7 @@ class Tracker:
             )
             if good is not None:  # a robot step lies beyond the dense methods' reach
                 starts = self.dense.with_swept(starts, good.registration, cloud, rgbd)
-            if weak:  # a direction the planes fix only weakly: the prediction's is as good
-                starts.append(T_pred)
+            starts += [T_pred] if weak else []  # a weakly fixed direction: the prediction's too
             agree = partial(self._keypoints_agree, keypoints)
             prior = None if close else T_pred  # across a gap, the motion decides ties
             dense = self.dense.register(starts, cloud, rgbd, reasons, slides, agree, prior)
@@ -392,9 +391,8 @@ class Tracker:
         return self._result(frame, view, T, assoc, path, "; ".join(reasons), found, keypoints)
 
     def _keypoints_agree(self, keypoints: Keypoints | None, T: np.ndarray) -> bool:
-        """Whether at least `points.min_inliers` matches of the frame's keypoints (None:
-        False) with the last keyframe's agree with T (4, 4): a wrong plane fit at a wide
-        baseline does not agree with the points."""
+        """Whether at least `points.min_inliers` matches of the keypoints (None: False) with
+        the last keyframe's agree with T (4, 4); a wrong wide-baseline plane fit does not."""
         if keypoints is None or self.keypoint_map is None or not len(keypoints):
             return False
         matches = self.keypoint_map.matches(keypoints, self.keypoint_map.recent(1))
