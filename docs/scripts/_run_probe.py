@@ -4,7 +4,8 @@ true step it makes (dense_choices.py, dense_landing.py, sweep_timing.py); a stag
 time over a whole run timed as `planeslam bench speed` times it (fused_cloud_cpu.py,
 map_merge_cpu.py); the modules that call `convex_hull_2d` (map_merge_cpu.py,
 hull_timing.py); the first frames of a sequence (`first_frames`: open3d_threads.py,
-tensor_odometry.py)."""
+tensor_odometry.py); the timing scripts' dataset (`timed_source`: fused_cloud_cpu.py,
+map_merge_cpu.py through `time_whole_run`, front_end_process.py)."""
 
 from __future__ import annotations
 
@@ -99,9 +100,14 @@ def step_error_m(truth: list[np.ndarray], i: int, T_previous: np.ndarray, T: np.
     return pose_difference(step(truth[i - 1], truth[i]), step(T_previous, T))[0]
 
 
-def thread_cpu(function: Callable[..., Any], spent: dict[str, float], figure: str):
+def thread_cpu(
+    function: Callable[..., Any],
+    spent: dict[str, float],
+    figure: str,
+    calls: dict[str, int] | None = None,
+):
     """`function` wrapped to add the CPU time of its calling thread (`time.thread_time`)
-    to spent[figure] [s]."""
+    to spent[figure] [s] and, with `calls`, 1 to calls[figure] per call."""
 
     def wrapper(*args, **kwargs):
         start = time.thread_time()
@@ -109,16 +115,26 @@ def thread_cpu(function: Callable[..., Any], spent: dict[str, float], figure: st
             return function(*args, **kwargs)
         finally:
             spent[figure] += time.thread_time() - start
+            if calls is not None:
+                calls[figure] += 1
 
     return wrapper
 
 
-def time_whole_run(argv: Sequence[str], default_frames: int) -> tuple[float, int, float]:
-    """The whole system on argv's [DATASET] [FRAMES] (default the 7-Scenes clip beside the
-    checkout and `default_frames`), timed as `planeslam bench speed` times it: (wall
-    seconds, frames, CPU seconds of this process and the backend worker)."""
-    from planeslam.app.bench_speed import _open_source, _time_whole_system
+def timed_source(argv: Sequence[str], default_frames: int):
+    """argv's [DATASET] [FRAMES] (default the 7-Scenes clip beside the checkout and
+    `default_frames`) opened as `planeslam bench speed` opens a dataset (its `_Source`)."""
+    from planeslam.app.bench_speed import _open_source
 
     dataset = Path(argv[1] if len(argv) > 1 else SEVEN_SCENES)
     frames = int(argv[2]) if len(argv) > 2 else default_frames
-    return _time_whole_system(_open_source(dataset, frames, None, ()))
+    return _open_source(dataset, frames, None, ())
+
+
+def time_whole_run(argv: Sequence[str], default_frames: int) -> tuple[float, int, float]:
+    """The whole system on argv's [DATASET] [FRAMES] (`timed_source`), timed as `planeslam
+    bench speed` times it: (wall seconds, frames, CPU seconds of this process and the
+    backend worker)."""
+    from planeslam.app.bench_speed import _time_whole_system
+
+    return _time_whole_system(timed_source(argv, default_frames))

@@ -18,12 +18,10 @@ from __future__ import annotations
 import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
-from _run_probe import SEVEN_SCENES
+from _run_probe import timed_source
 
-from planeslam.app.bench_speed import _open_source
 from planeslam.core.native_tuning import keep_freed_memory
 from planeslam.frontend import worker
 from planeslam.slam import run_frames, slam_for_dataset
@@ -31,9 +29,7 @@ from planeslam.slam import run_frames, slam_for_dataset
 WAITED = [0.0]
 
 
-def _timed_result(
-    self: worker.FrontEndWorker, _result=worker.FrontEndWorker.result
-) -> object:
+def _timed_result(self: worker.FrontEndWorker, _result=worker.FrontEndWorker.result) -> object:
     t0 = time.perf_counter()
     try:
         return _result(self)
@@ -42,12 +38,10 @@ def _timed_result(
 
 
 def main() -> None:
-    folder = Path(sys.argv[1]) if len(sys.argv) > 1 else SEVEN_SCENES
-    frames = int(sys.argv[2]) if len(sys.argv) > 2 else 300
     rounds = int(sys.argv[3]) if len(sys.argv) > 3 else 2
     keep_freed_memory()  # as the CLI does
     worker.FrontEndWorker.result = _timed_result  # type: ignore[method-assign]
-    source = _open_source(folder, frames, None, [])
+    source = timed_source(sys.argv, 300)
     trajectories = {}
     for _ in range(rounds):
         for in_worker in (False, True):
@@ -61,9 +55,7 @@ def main() -> None:
                 t1 = os.times()
             n = summary.frames
             own = t1.user + t1.system - t0.user - t0.system
-            children = (
-                t1.children_user + t1.children_system - t0.children_user - t0.children_system
-            )
+            children = t1.children_user + t1.children_system - t0.children_user - t0.children_system
             print(
                 f"front end {'in its process' if in_worker else 'in-process   '}: "
                 f"{n / summary.seconds:5.1f} fps; CPU ms/frame: this process "

@@ -12,11 +12,9 @@ GIL), and prints each part's milliseconds per processed frame.
 from __future__ import annotations
 
 import collections
-import functools
 import sys
-import time
-from collections.abc import Callable
-from typing import Any
+
+from _run_probe import thread_cpu
 
 from planeslam.app.cli import main
 from planeslam.frontend.pipeline import FrontEnd
@@ -26,21 +24,6 @@ from planeslam.tracking.tracker import Tracker
 
 SECONDS: collections.Counter[str] = collections.Counter()
 CALLS: collections.Counter[str] = collections.Counter()
-
-
-def _timed(cls: type, name: str, label: str) -> None:
-    method: Callable[..., Any] = getattr(cls, name)
-
-    @functools.wraps(method)
-    def timed(*args: Any, **kwargs: Any) -> Any:
-        t0 = time.thread_time()
-        try:
-            return method(*args, **kwargs)
-        finally:
-            SECONDS[label] += time.thread_time() - t0
-            CALLS[label] += 1
-
-    setattr(cls, name, timed)
 
 
 if __name__ == "__main__":
@@ -54,7 +37,7 @@ if __name__ == "__main__":
         (SLAM, "map_view", "map view"),
         (SLAM, "_pose_covariance", "pose covariance"),
     ):
-        _timed(cls, name, label)
+        setattr(cls, name, thread_cpu(getattr(cls, name), SECONDS, label, CALLS))
     try:
         main(sys.argv[1:])
     except SystemExit as exc:
