@@ -24,6 +24,10 @@ run in the same job, one after the other, and each gets (`MethodFigures`):
   same over the furniture alone (the room left out: a partial view measures it only by
   the walls it saw);
 - fps.
+Beside them, the sequence's blind frames: frames whose noise-free image does not change
+when the camera slides 5 cm along a world axis (`planeslam.sim.observability`), so that
+no method reading the images can place them along it; a sequence blind on every frame
+(one bare wall filling the view) is out of any such method's reach.
 A sequence passes when it tracks >= 98 % of its frames with ATE <= 2 cm and no false
 jump over 10 cm; planeslam is ahead of Open3D on it when it tracks at least Open3D's
 fraction with a lower ATE.
@@ -50,12 +54,14 @@ from planeslam.core.geometry import invert_pose
 from planeslam.core.types import TrackingPath
 from planeslam.io.sequence import open_dataset
 from planeslam.io.trajectory import Trajectory, write_tum
+from planeslam.sim.observability import SLIDE_M, UNCHANGED_SHARE, blind_frames
 from planeslam.sim.procedural import (
     DEPTH_MODELS,
     GENERATOR_VERSION,
     TEXTURE_KINDS,
     TRAJECTORY_KINDS,
     Recipe,
+    build_sequence,
     draw_recipe,
     write_procedural,
 )
@@ -82,6 +88,8 @@ WRONG_RELOC_M = 0.10
 """A relocalisation farther than this from the aligned truth is wrong [m] ..."""
 WRONG_RELOC_DEG = 5.0
 """... or turned more than this [deg]."""
+SIGHT_FILE = "sight.json"
+"""A rendered sequence's blind frames, kept beside it (`blind_frame_count`)."""
 
 
 @dataclass(frozen=True)
@@ -159,6 +167,9 @@ class RobustRow:
     open3d: MethodFigures
     seconds: float = 0.0
     """Wall-clock time of the whole job (rendering included) [s]."""
+    blind_frames: int = 0
+    """Frames whose images leave the camera unplaced along a world axis (module
+    docstring; rows written before the count have 0)."""
 
     @property
     def ahead_of_open3d(self) -> bool:
@@ -284,6 +295,37 @@ def ensure_rendered(recipe: Recipe, data_dir: Path, max_frames: int | None = Non
     return root
 
 
+def blind_frame_count(recipe: Recipe, root: Path, max_frames: int | None = None) -> int:
+    """How many frames of `recipe` (rendered at `root`; `max_frames`: its first frames only)
+    are blind (`planeslam.sim.observability.blind_frames`); counted once and kept in
+    root/sight.json beside what the count depends on."""
+    file = root / SIGHT_FILE
+    key = {
+        "recipe": json.loads(json.dumps(asdict(recipe))),
+        "generator_version": GENERATOR_VERSION,
+        "max_frames": max_frames,
+        "slide_m": SLIDE_M,
+        "unchanged_share": UNCHANGED_SHARE,
+    }
+    if file.is_file():
+        try:
+            stored = json.loads(file.read_text(encoding="utf-8"))
+            if stored["key"] == key:
+                return int(stored["blind_frames"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
+    scene, path = build_sequence(recipe)
+    camera = resolve_config(root, None).camera
+    blind = blind_frames(scene, path.T_world_cam[:max_frames], camera)
+    record = {
+        "key": key,
+        "blind_frames": len(blind),
+        "frames": [[sight.frame, sight.blind_axes] for sight in blind],
+    }
+    file.write_text(json.dumps(record) + "\n", encoding="utf-8")
+    return len(blind)
+
+
 def _run_planeslam(
     root: Path, overrides: Sequence[ConfigLayer], run_dir: Path | None = None
 ) -> tuple[MethodFigures, int]:
@@ -368,6 +410,7 @@ def run_sequence(
     start = time.perf_counter()
     recipe = sequence.recipe
     root = ensure_rendered(recipe, Path(data_dir), sequence.max_frames)
+    blind = blind_frame_count(recipe, root, sequence.max_frames)
     frames = 0
     try:
         run_dir = None if runs_dir is None else Path(runs_dir) / recipe.name
@@ -393,6 +436,7 @@ def run_sequence(
         planeslam=ours,
         open3d=theirs,
         seconds=time.perf_counter() - start,
+        blind_frames=blind,
     )
 
 
@@ -496,6 +540,10 @@ class GroupSummary:
     object_size_error_median_m: float | None
     furniture_size_error_median_m: float | None
     fps_median: float | None
+    blind: int = 0
+    """Sequences with a blind frame (module docstring)."""
+    all_blind: int = 0
+    """Sequences blind on every frame."""
 
 
 def _median(values: Sequence[float | None]) -> float | None:
@@ -520,6 +568,8 @@ def summarise(label: str, rows: Sequence[RobustRow]) -> GroupSummary:
         object_size_error_median_m=_median([m.object_size_error_m for m in ours]),
         furniture_size_error_median_m=_median([m.furniture_size_error_m for m in ours]),
         fps_median=_median([m.fps for m in ours]),
+        blind=sum(r.blind_frames > 0 for r in rows),
+        all_blind=sum(r.frames > 0 and r.blind_frames >= r.frames for r in rows),
     )
 
 
@@ -557,9 +607,9 @@ def summary_markdown(rows: Sequence[RobustRow]) -> str:
     head = (
         "| group | seqs | pass | ahead of Open3D | Open3D pass | tracked (median) "
         "| ATE median [cm] | Open3D ATE median [cm] | false jumps | relocs (wrong) "
-        "| object size err [cm] | furniture size err [cm] | fps |"
+        "| object size err [cm] | furniture size err [cm] | fps | with blind frames (all) |"
     )
-    rule = "|" + "---|" * 13
+    rule = "|" + "---|" * 14
     parts = []
     for split, groups in summaries(rows).items():
         body = [
@@ -568,7 +618,8 @@ def summary_markdown(rows: Sequence[RobustRow]) -> str:
             f"| {_fmt(g.open3d_ate_median_m, '.2f', 100)} | {g.false_jumps} "
             f"| {g.relocalisations} ({g.wrong_relocalisations}) "
             f"| {_fmt(g.object_size_error_median_m, '.1f', 100)} "
-            f"| {_fmt(g.furniture_size_error_median_m, '.1f', 100)} | {_fmt(g.fps_median, '.1f')} |"
+            f"| {_fmt(g.furniture_size_error_median_m, '.1f', 100)} | {_fmt(g.fps_median, '.1f')} "
+            f"| {g.blind} ({g.all_blind}) |"
             for g in groups
         ]
         parts.append(f"**{split} set**\n\n" + "\n".join([head, rule, *body]))
@@ -632,9 +683,9 @@ def rows_markdown(rows: Sequence[RobustRow]) -> str:
     head = (
         "| sequence | set | frames | tracked | ATE [cm] | false jump [cm] | relocs (wrong) "
         "| object size err [cm] | furniture size err [cm] | fps | Open3D tracked "
-        "| Open3D ATE [cm] | Open3D jump [cm] | pass | error |"
+        "| Open3D ATE [cm] | Open3D jump [cm] | blind frames | pass | error |"
     )
-    rule = "|" + "---|" * 15
+    rule = "|" + "---|" * 16
     body = []
     for r in rows:
         m, o = r.planeslam, r.open3d
@@ -646,6 +697,7 @@ def rows_markdown(rows: Sequence[RobustRow]) -> str:
             f"| {_fmt(m.object_size_error_m, '.1f', 100)} "
             f"| {_fmt(m.furniture_size_error_m, '.1f', 100)} | {_fmt(m.fps, '.1f')} "
             f"| {_fmt(o.tracked_fraction, '.1%')} | {_fmt(o.ate_m, '.2f', 100)} "
-            f"| {_fmt(o.false_jump_m, '.1f', 100)} | {'yes' if m.passed else 'no'} | {error} |"
+            f"| {_fmt(o.false_jump_m, '.1f', 100)} | {r.blind_frames} "
+            f"| {'yes' if m.passed else 'no'} | {error} |"
         )
     return "\n".join([head, rule, *body]) + "\n"

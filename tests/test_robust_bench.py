@@ -21,10 +21,12 @@ from planeslam.eval.robust import (
     MethodFigures,
     RobustRow,
     benchmark_sequences,
+    blind_frame_count,
     changes_markdown,
     false_jump_m,
     method_figures,
     read_rows,
+    rows_markdown,
     run_sequence,
     summaries,
     summary_markdown,
@@ -32,6 +34,7 @@ from planeslam.eval.robust import (
 )
 from planeslam.eval.trajectory_metrics import evaluate_trajectory
 from planeslam.io.trajectory import Trajectory, read_tum
+from planeslam.sim.observability import frame_sight
 from planeslam.sim.procedural import (
     DEPTH_MODELS,
     FURNITURE_KINDS,
@@ -155,6 +158,42 @@ def test_textures_render_as_named() -> None:
     assert spread["noise"] > 2.0
     with pytest.raises(ConfigError, match="pattern"):
         Texture(pattern="marble")
+
+
+def test_a_bare_wall_filling_the_view_leaves_the_camera_blind_along_it() -> None:
+    room = Box("room", np.array([0.0, 0.0, 1.25]), np.array([4.0, 4.0, 2.5]), kind="room")
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # looks +x
+    T[:3, 3] = [1.4, 0.0, 1.25]  # 0.6 m from the wall at x = 2: nothing else in view
+    camera = CameraConfig()
+    bare = make_scene("wall", (room,), texture=Texture(seed=1, pattern="none"))
+    sight = frame_sight(bare, T, camera)
+    assert sight.blind_axes == "yz"  # along the wall; the depth places x
+    assert sight.changed_share[0] > 0.9
+    textured = make_scene("wall", (room,), texture=Texture(seed=1, pattern="noise"))
+    assert frame_sight(textured, T, camera).blind_axes == ""
+    T[:3, 3] = [-1.4, 0.0, 1.25]  # 3.4 m back: floor, ceiling and side walls in view too
+    assert frame_sight(bare, T, camera).blind_axes == ""
+
+
+def test_a_sequence_s_blind_frames_are_counted_once_and_kept_beside_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import planeslam.eval.robust as robust
+
+    recipe = draw_recipe(40, trajectory="wall", texture="none", depth_model="disparity")
+    root = robust.ensure_rendered(recipe, tmp_path, max_frames=2)
+    assert blind_frame_count(recipe, root, 2) == 2  # every frame: one bare wall
+    kept = json.loads((root / "sight.json").read_text(encoding="utf-8"))
+    assert kept["frames"] == [[0, "xz"], [1, "xz"]]
+
+    def fails(*args: object) -> None:
+        raise AssertionError("counted again")
+
+    monkeypatch.setattr(robust, "blind_frames", fails)
+    assert blind_frame_count(recipe, root, 2) == 2  # read back
+    with pytest.raises(AssertionError, match="counted again"):
+        blind_frame_count(recipe, root, 1)  # another count, counted afresh
 
 
 def test_tof_noise_grows_with_depth_and_drops_dark_faces() -> None:
@@ -301,6 +340,13 @@ def test_summaries_count_passes_and_wins_per_set_and_kind() -> None:
     text = summary_markdown(rows)
     assert "**tuning set**" in text and "**validation set**" in text
     assert RobustRow.from_dict(json.loads(json.dumps(rows[2].to_dict()))) == rows[2]
+    blind = [replace(rows[1], blind_frames=30), replace(rows[2], blind_frames=4), rows[3]]
+    val = summaries(blind)["validation"][0]
+    assert (val.blind, val.all_blind) == (2, 1)  # 30 of 30 frames blind, 4 of 30
+    assert "| 2 (1) |" in summary_markdown(blind)
+    assert "| 30 | yes |" in rows_markdown(blind)  # blind on every frame, and still passed
+    older = {k: v for k, v in rows[1].to_dict().items() if k != "blind_frames"}
+    assert RobustRow.from_dict(older).blind_frames == 0  # rows written before the count
 
 
 def test_an_earlier_run_is_read_back_and_what_moved_is_listed(tmp_path: Path) -> None:
