@@ -54,14 +54,13 @@ from planeslam.core.geometry import invert_pose
 from planeslam.core.types import TrackingPath
 from planeslam.io.sequence import open_dataset
 from planeslam.io.trajectory import Trajectory, write_tum
-from planeslam.sim.observability import SLIDE_M, UNCHANGED_SHARE, blind_frames
+from planeslam.sim.observability import count_blind_frames
 from planeslam.sim.procedural import (
     DEPTH_MODELS,
     GENERATOR_VERSION,
     TEXTURE_KINDS,
     TRAJECTORY_KINDS,
     Recipe,
-    build_sequence,
     draw_recipe,
     write_procedural,
 )
@@ -88,8 +87,6 @@ WRONG_RELOC_M = 0.10
 """A relocalisation farther than this from the aligned truth is wrong [m] ..."""
 WRONG_RELOC_DEG = 5.0
 """... or turned more than this [deg]."""
-SIGHT_FILE = "sight.json"
-"""A rendered sequence's blind frames, kept beside it (`blind_frame_count`)."""
 
 
 @dataclass(frozen=True)
@@ -296,34 +293,9 @@ def ensure_rendered(recipe: Recipe, data_dir: Path, max_frames: int | None = Non
 
 
 def blind_frame_count(recipe: Recipe, root: Path, max_frames: int | None = None) -> int:
-    """How many frames of `recipe` (rendered at `root`; `max_frames`: its first frames only)
-    are blind (`planeslam.sim.observability.blind_frames`); counted once and kept in
-    root/sight.json beside what the count depends on."""
-    file = root / SIGHT_FILE
-    key = {
-        "recipe": json.loads(json.dumps(asdict(recipe))),
-        "generator_version": GENERATOR_VERSION,
-        "max_frames": max_frames,
-        "slide_m": SLIDE_M,
-        "unchanged_share": UNCHANGED_SHARE,
-    }
-    if file.is_file():
-        try:
-            stored = json.loads(file.read_text(encoding="utf-8"))
-            if stored["key"] == key:
-                return int(stored["blind_frames"])
-        except (OSError, ValueError, KeyError, TypeError):
-            pass
-    scene, path = build_sequence(recipe)
-    camera = resolve_config(root, None).camera
-    blind = blind_frames(scene, path.T_world_cam[:max_frames], camera)
-    record = {
-        "key": key,
-        "blind_frames": len(blind),
-        "frames": [[sight.frame, sight.blind_axes] for sight in blind],
-    }
-    file.write_text(json.dumps(record) + "\n", encoding="utf-8")
-    return len(blind)
+    """How many frames of `recipe`, rendered at `root` with its camera.yaml, are blind
+    (`planeslam.sim.observability.count_blind_frames`, kept in root/sight.json)."""
+    return count_blind_frames(recipe, root, resolve_config(root, None).camera, max_frames)
 
 
 def _run_planeslam(

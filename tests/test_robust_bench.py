@@ -180,6 +180,7 @@ def test_a_sequence_s_blind_frames_are_counted_once_and_kept_beside_it(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     import planeslam.eval.robust as robust
+    import planeslam.sim.observability as observability
 
     recipe = draw_recipe(40, trajectory="wall", texture="none", depth_model="disparity")
     root = robust.ensure_rendered(recipe, tmp_path, max_frames=2)
@@ -190,7 +191,7 @@ def test_a_sequence_s_blind_frames_are_counted_once_and_kept_beside_it(
     def fails(*args: object) -> None:
         raise AssertionError("counted again")
 
-    monkeypatch.setattr(robust, "blind_frames", fails)
+    monkeypatch.setattr(observability, "blind_frames", fails)
     assert blind_frame_count(recipe, root, 2) == 2  # read back
     with pytest.raises(AssertionError, match="counted again"):
         blind_frame_count(recipe, root, 1)  # another count, counted afresh

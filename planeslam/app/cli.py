@@ -350,7 +350,8 @@ def _add_bench(sub: argparse._SubParsersAction) -> None:
         "textures, depth models, camera paths drawn from fixed seeds; half a tuning set, "
         "half a validation set) and run planeslam and Open3D RGB-D odometry on each: "
         "tracked fraction, ATE, false jumps, relocalisations (and wrong ones), object size "
-        "error, fps; a summary per set and per kind (OUT/rows.jsonl), and per sequence "
+        "error, fps, blind frames (whose images do not place the camera along some axis); "
+        "a summary per set and per kind (OUT/rows.jsonl), and per sequence "
         "planeslam's trajectory.txt and frame_errors.csv (each frame's error and its "
         "step's, beside its tracking path: OUT/runs/NAME/). Tune on the tuning set; "
         "accept a tracking change by the validation set's summary.",

@@ -10,11 +10,14 @@ World frame z up, metres; poses T_world_cam (4, 4), camera x right, y down, z fo
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
 
 import numpy as np
 
 from planeslam.core.camera import CameraConfig
+from planeslam.sim.procedural import GENERATOR_VERSION, Recipe, build_sequence
 from planeslam.sim.render import RenderedFrame, render_frame
 from planeslam.sim.scene_model import Scene
 
@@ -27,6 +30,8 @@ DEPTH_CHANGE_M = 1e-4
 """A pixel's depth changed by more than this [m] counts as changed (noise-free render:
 the rest is float rounding)."""
 AXES = "xyz"
+SIGHT_FILE = "sight.json"
+"""A rendered sequence's blind frames, kept in its folder (`count_blind_frames`)."""
 
 
 @dataclass(frozen=True)
@@ -71,3 +76,36 @@ def blind_frames(scene: Scene, T_world_cam: np.ndarray, camera: CameraConfig) ->
     unplaced (`FrameSight.blind_axes`), in order."""
     sights = (frame_sight(scene, T, camera, i) for i, T in enumerate(T_world_cam))
     return [s for s in sights if s.blind_axes]
+
+
+def count_blind_frames(
+    recipe: Recipe, folder: Path, camera: CameraConfig, max_frames: int | None = None
+) -> int:
+    """How many frames of `recipe`'s path (`max_frames`: its first frames only), seen by
+    `camera`, are blind (`blind_frames`); counted once and kept in folder/sight.json with
+    what the count depends on, and the blind frames with their axes."""
+    file = folder / SIGHT_FILE
+    key = {
+        "recipe": json.loads(json.dumps(asdict(recipe))),
+        "generator_version": GENERATOR_VERSION,
+        "camera": [camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height],
+        "max_frames": max_frames,
+        "slide_m": SLIDE_M,
+        "unchanged_share": UNCHANGED_SHARE,
+    }
+    if file.is_file():
+        try:
+            stored = json.loads(file.read_text(encoding="utf-8"))
+            if stored["key"] == key:
+                return int(stored["blind_frames"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass  # unreadable or another count's: counted afresh
+    scene, path = build_sequence(recipe)
+    blind = blind_frames(scene, path.T_world_cam[:max_frames], camera)
+    record = {
+        "key": key,
+        "blind_frames": len(blind),
+        "frames": [[sight.frame, sight.blind_axes] for sight in blind],
+    }
+    file.write_text(json.dumps(record) + "\n", encoding="utf-8")
+    return len(blind)

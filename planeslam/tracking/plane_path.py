@@ -4,8 +4,8 @@ under the predicted pose (paper Section 4.4).
 `PlanePath.register` associates the frame's planes and corners with the map's under the
 prediction (`association.associate_with_corners`), solves the closed-form pose
 (`registration.pose_from_planes_and_points`), drops correspondences beyond the residual
-gates, associates again under the solution and solves once more; `refined` refines that
-pose over the same planes (each weighted by its fit and patch covariance) and corners.
+gates, associates again under the solution and solves once more (`register`);
+`completed` fills the directions the planes leave free from another pose.
 
 Frames: map planes and corners in the world frame, observations in the camera frame;
 every pose is T_world_cam (4, 4).
