@@ -286,7 +286,7 @@ def ensure_rendered(recipe: Recipe, data_dir: Path, max_frames: int | None = Non
             made = (stored["recipe"], stored["generator_version"])
         except (OSError, ValueError, KeyError, TypeError):
             made = None
-        if made == (json.loads(json.dumps(asdict(recipe))), GENERATOR_VERSION):
+        if made == (recipe.record(), GENERATOR_VERSION):
             return root
     write_procedural(recipe, root, max_frames=max_frames)
     return root

@@ -11,12 +11,13 @@ World frame z up, metres; poses T_world_cam (4, 4), camera x right, y down, z fo
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from planeslam.core.camera import CameraConfig
+from planeslam.core.safe_files import write_text_atomic
 from planeslam.sim.procedural import GENERATOR_VERSION, Recipe, build_sequence
 from planeslam.sim.render import RenderedFrame, render_frame
 from planeslam.sim.scene_model import Scene
@@ -86,7 +87,7 @@ def count_blind_frames(
     what the count depends on, and the blind frames with their axes."""
     file = folder / SIGHT_FILE
     key = {
-        "recipe": json.loads(json.dumps(asdict(recipe))),
+        "recipe": recipe.record(),
         "generator_version": GENERATOR_VERSION,
         "camera": [camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height],
         "max_frames": max_frames,
@@ -107,5 +108,5 @@ def count_blind_frames(
         "blind_frames": len(blind),
         "frames": [[sight.frame, sight.blind_axes] for sight in blind],
     }
-    file.write_text(json.dumps(record) + "\n", encoding="utf-8")
+    write_text_atomic(file, json.dumps(record) + "\n")  # a reader never sees half of it
     return len(blind)

@@ -111,6 +111,13 @@ class Recipe:
         if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
             raise ConfigError(f"recipe seed must be a whole number >= 0, got {self.seed!r}")
 
+    def record(self) -> dict[str, object]:
+        """The recipe as truth.json stores it (JSON types: furniture a list), to compare
+        with a stored one."""
+        record = asdict(self)
+        record["furniture"] = list(self.furniture)
+        return record
+
     @property
     def name(self) -> str:
         """Folder and row name: 's007-orbit-posters-tof'."""
@@ -487,5 +494,5 @@ def write_procedural(
         camera=camera,
         noise_model=recipe.depth_model,
         rng=np.random.default_rng([recipe.seed, 2]),
-        rendering={"recipe": asdict(recipe), "generator_version": GENERATOR_VERSION},
+        rendering={"recipe": recipe.record(), "generator_version": GENERATOR_VERSION},
     )
