@@ -1,5 +1,6 @@
 """The compiled front-end kernels against the numpy and scipy code they replace: the same
-results bit for bit (labels, counts, sums, points and their order) on seeded random input."""
+results bit for bit (labels, counts, sums, points and their order) on seeded random input;
+the moments and fits summed in another order, within 1e-12 of it."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 from scipy import ndimage
 from scipy.sparse.csgraph import connected_components
 
-from planeslam.frontend import kernels, plane_kernels
+from planeslam.frontend import cell_kernels, kernels, plane_kernels
 
 pytestmark = pytest.mark.unit
 
@@ -124,7 +125,7 @@ def test_components_match_scipy(rng):
         n = int(rng.integers(1, 30))
         linked = rng.random((n, n)) < 2.0 / n
         _, expected = connected_components(linked, directed=False)
-        assert np.array_equal(kernels.dense_components_kernel(linked), expected)
+        assert np.array_equal(cell_kernels.dense_components_kernel(linked), expected)
 
 
 def test_flood_fill_matches_ndimage_label(rng):
@@ -135,7 +136,7 @@ def test_flood_fill_matches_ndimage_label(rng):
         fit[seed] = True
         comp, _ = ndimage.label(fit.reshape(rows, cols))
         expected = np.flatnonzero(comp.ravel() == comp.ravel()[seed])
-        assert np.array_equal(kernels.flood_fill_kernel(fit, rows, cols, seed), expected)
+        assert np.array_equal(cell_kernels.flood_fill_kernel(fit, rows, cols, seed), expected)
 
 
 def test_group_sums_match_bincount(rng):
@@ -145,7 +146,7 @@ def test_group_sums_match_bincount(rng):
     mean = rng.normal(size=(cells, 3))
     a = rng.normal(size=(cells, 3, 3))
     scatter = a @ a.transpose(0, 2, 1)
-    total, first, second = kernels.group_sums_kernel(group, count, mean, scatter, groups)
+    total, first, second = cell_kernels.group_sums_kernel(group, count, mean, scatter, groups)
     member = group >= 0
     g, w, m = group[member], count[member].astype(np.float64), mean[member]
     assert np.array_equal(total, np.bincount(g, weights=w, minlength=groups))
@@ -174,7 +175,7 @@ def test_link_cells_components_match_scipy_on_the_links(rng):
     count = np.full(n, 100)
     sigma = np.full(n, 0.01)
     tilt = np.full(n, 1e-6)
-    comp, degree = kernels.link_cells_kernel(
+    comp, degree = cell_kernels.link_cells_kernel(
         rows, cols, planar, normal, d, mean, scatter, count, sigma, tilt, 0.1, 9.0
     )
     grid = np.arange(n).reshape(rows, cols)
@@ -396,3 +397,128 @@ def test_inverse_depth_noise_matches_numpy(rng, count):
         expected = inverse_depth_residual_steps(xyz[:, :: max(1, count // 4096)].T, normal, d, step)
         got = plane_kernels.inverse_depth_noise_kernel(xyz, normal, d, step, 4096)
         assert abs(got - expected) <= 1e-12 * max(expected, 1.0)
+
+
+def test_plane_fits_match_the_single_plane_functions(rng):
+    """Each segment's fit, covariance and cubed depths against `moments_of`,
+    `plane_from_moments` and `plane_covariance`; degenerate segments flagged."""
+    from planeslam.core.plane_fit import moments_of, plane_covariance, plane_from_moments
+
+    segments = []
+    for k in (500, 3, 40):
+        normal = rng.normal(size=3)
+        uv = rng.uniform(-1.0, 1.0, (k, 2))
+        basis = np.linalg.svd(normal[None])[2][1:]
+        segments.append(
+            uv @ basis + 2.0 * normal / np.linalg.norm(normal) + rng.normal(0, 1e-3, (k, 3))
+        )
+    segments.append(
+        np.outer(np.linspace(0.0, 1.0, 20), [1.0, 2.0, 3.0]) + [0.0, 0.0, 2.0]
+    )  # a line
+    xyz = np.ascontiguousarray(np.concatenate(segments).T)
+    bounds = np.cumsum([0] + [len(s) for s in segments])
+    count, centroid, scatter, normal, d, rss, cov, cubes, status = plane_fits_kernel_of(xyz, bounds)
+    ok, few, line = (
+        plane_kernels.FIT_OK,
+        plane_kernels.FIT_TOO_FEW_POINTS,
+        plane_kernels.FIT_COLLINEAR,
+    )
+    assert status.tolist() == [ok, few, ok, line] and count.tolist() == [500, 3, 40, 20]
+    for i in (0, 2):
+        k, c, s = moments_of(segments[i])
+        n, off, res = plane_from_moments(c, s)
+        np.testing.assert_allclose(centroid[i], c, rtol=1e-12)
+        np.testing.assert_allclose(scatter[i], s, rtol=1e-9, atol=1e-12 * np.abs(s).max())
+        assert abs(abs(normal[i] @ n) - 1.0) < 1e-12 and np.sign(normal[i] @ n) > 0
+        assert abs(d[i] - off) < 1e-12 and abs(rss[i] - res) < 1e-9 * res
+        np.testing.assert_allclose(cov[i], plane_covariance(n, c, s, k, res), rtol=1e-7)
+        assert abs(cubes[i] - float(np.sum(segments[i][:, 2] ** 3))) < 1e-9 * abs(cubes[i])
+
+
+def plane_fits_kernel_of(xyz, bounds):
+    return plane_kernels.plane_fits_kernel(xyz, np.asarray(bounds, dtype=np.int64))
+
+
+def _grow_regions_numpy(cells, member, degree, rows, cols, min_px, cfg):
+    """The numpy code `grow_regions_kernel` replaced -> [(cells, count, normal, d)]."""
+    from planeslam.core.errors import GeometryError
+    from planeslam.core.plane_fit import merge_moments, plane_from_moments
+    from planeslam.frontend.organized import _cos_tolerance, _rms2_to_plane
+
+    def region_of(idx):
+        count, centroid, scatter = merge_moments(
+            cells.count[idx], cells.mean[idx], cells.scatter[idx]
+        )
+        try:
+            normal, d, _ = plane_from_moments(centroid, scatter)
+        except GeometryError:
+            return None
+        return idx, count, normal, d
+
+    def fitting(idx, region):
+        rms2 = _rms2_to_plane(cells, idx, region[2], np.float64(region[3]))
+        cos_max = _cos_tolerance(cells.tilt_var[idx], cfg)
+        return (rms2 <= (cfg.organized.merge_max_rms_sigmas * cells.sigma[idx]) ** 2) & (
+            cells.normal[idx] @ region[2] >= cos_max
+        )
+
+    remaining = np.zeros(rows * cols, dtype=bool)
+    remaining[member] = True
+    regions = []
+    for _ in range(64):
+        cand = np.flatnonzero(remaining)
+        if cells.count[cand].sum() < min_px:
+            break
+        seed = int(cand[np.argmax(degree[cand])])
+        region = region_of(np.array([seed]))
+        grown = np.array([seed])
+        for _ in range(4):
+            if region is None:
+                break
+            fit = np.zeros(rows * cols, dtype=bool)
+            fit[cand] = fitting(cand, region)
+            fit[seed] = True
+            new = cell_kernels.flood_fill_kernel(fit, rows, cols, seed)
+            if len(new) == len(grown):
+                break
+            grown = new
+            region = region_of(grown)
+        remaining[grown] = False
+        if region is not None and region[1] >= min_px:
+            regions.append(region)
+    return regions
+
+
+def test_grow_regions_matches_numpy():
+    """On a frame of a bent wall (cells chain across the bend) and a floor: the same
+    regions, cells and counts, planes within 1e-12."""
+    from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
+    from planeslam.frontend import organized
+    from planeslam.frontend.cloud import organized_cloud
+    from planeslam.frontend.config import SegmentationConfig
+
+    camera = CameraConfig()
+    rays = PixelRays.for_camera(camera)
+    u = np.arange(camera.width) / camera.width - 0.5
+    depth = np.tile(2.0 + 1.5 * u**2, (camera.height, 1))  # a wall bent about the centre
+    v = rays.rays[:, :, 1]
+    floor = np.where(v > 0.05, 1.2 / np.maximum(v, 1e-9), np.inf)
+    depth = np.minimum(depth, floor) + np.random.default_rng(3).normal(0, 1e-3, depth.shape)
+    cfg, noise = SegmentationConfig(), DepthNoiseConfig()
+    pixels = organized.pixel_grid(camera)
+    grid = organized._cell_grid(pixels, cfg.organized.cell_size_px)
+    cloud = organized_cloud(depth.astype(np.float32), rays, cfg.max_depth_m)
+    x, y, z, valid = kernels.cells_from_cloud_kernel(
+        cloud, grid.rows, grid.cols, grid.cell, grid.rx, grid.ry, np.float32(cfg.max_depth_m)
+    )
+    cells = organized._cell_fits(x, y, z, valid, cfg, noise)
+    _, degree = organized._link_cells(cells, grid.rows, grid.cols, cfg)
+    member = np.flatnonzero(cells.planar)
+    min_px = 0.5 * cfg.min_plane_points
+    expected = _grow_regions_numpy(cells, member, degree, grid.rows, grid.cols, min_px, cfg)
+    got = organized._grow_regions(cells, member, degree, grid.rows, grid.cols, min_px, cfg)
+    assert len(expected) >= 2 and len(got) == len(expected)
+    for region, (idx, count, normal, d) in zip(got, expected, strict=True):
+        assert np.array_equal(region.cells, idx) and region.count == count
+        np.testing.assert_allclose(region.normal, normal, atol=1e-12)
+        assert abs(region.d - d) <= 1e-12

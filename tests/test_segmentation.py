@@ -18,8 +18,8 @@ from planeslam.core.plane_fit import (
     patch_covariance,
     plane_covariance,
     plane_from_moments,
-    smallest_eigh3,
 )
+from planeslam.frontend.cell_kernels import smallest_eigh3_kernel
 from planeslam.frontend.cloud import organized_cloud
 from planeslam.frontend.config import MsacConfig, OrganizedConfig, SegmentationConfig
 from planeslam.frontend.msac import MsacSegmenter
@@ -228,12 +228,12 @@ def test_tangent_basis_matches_gtsam_unit3(rng):
         np.testing.assert_allclose(tangent_basis(n), gtsam.Unit3(n).basis(), atol=1e-12)
 
 
-def test_smallest_eigh3_matches_numpy(rng):
+def test_smallest_eigh3_kernel_matches_numpy(rng):
     a = rng.normal(size=(200, 3, 3))
     s = a @ a.transpose(0, 2, 1)
     s[:50, :, 2] *= 1e-3  # flat ones, as plane cells are
     s = 0.5 * (s + s.transpose(0, 2, 1))
-    lam_min, lam_mid, vec = smallest_eigh3(s)
+    lam_min, lam_mid, vec = smallest_eigh3_kernel(s)
     ref_val, ref_vec = np.linalg.eigh(s)
     np.testing.assert_allclose(lam_min, ref_val[:, 0], rtol=1e-6, atol=1e-9)
     np.testing.assert_allclose(lam_mid, ref_val[:, 1], rtol=1e-6, atol=1e-9)

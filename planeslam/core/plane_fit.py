@@ -108,47 +108,6 @@ def plane_covariance(
     return (rss / (count - 3)) * info_inv
 
 
-def smallest_eigh3(scatter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Batched closed-form eigen-analysis of symmetric 3x3 matrices (C, 3, 3) float64.
-
-    Returns (smallest eigenvalue (C,), middle eigenvalue (C,), unit eigenvector of the
-    smallest (C, 3)). About 15x faster than `np.linalg.eigh` on many small matrices;
-    a row with no well-defined smallest eigenvector (isotropic or rank <= 1) gets a
-    zero vector.
-    """
-    a00, a11, a22 = scatter[:, 0, 0], scatter[:, 1, 1], scatter[:, 2, 2]
-    a01, a02, a12 = scatter[:, 0, 1], scatter[:, 0, 2], scatter[:, 1, 2]
-    q = (a00 + a11 + a22) / 3.0
-    b00, b11, b22 = a00 - q, a11 - q, a22 - q
-    p1 = a01 * a01 + a02 * a02 + a12 * a12
-    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1) / 6.0)
-    safe_p = np.where(p > 0, p, 1.0)
-    det_b = (
-        b00 * (b11 * b22 - a12 * a12)
-        - a01 * (a01 * b22 - a12 * a02)
-        + a02 * (a01 * a12 - b11 * a02)
-    )
-    r = np.clip(det_b / (2.0 * safe_p**3), -1.0, 1.0)
-    phi = np.arccos(r) / 3.0
-    lam_max = q + 2.0 * p * np.cos(phi)
-    lam_min = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
-    lam_mid = 3.0 * q - lam_max - lam_min
-    # Rows of (A - lam_min I) span the plane orthogonal to the eigenvector: cross them.
-    r0 = np.stack([a00 - lam_min, a01, a02], axis=1)
-    r1 = np.stack([a01, a11 - lam_min, a12], axis=1)
-    r2 = np.stack([a02, a12, a22 - lam_min], axis=1)
-    c = np.stack([np.cross(r0, r1), np.cross(r0, r2), np.cross(r1, r2)], axis=1)
-    norms = np.einsum("cki,cki->ck", c, c)
-    best = np.argmax(norms, axis=1)
-    rows = np.arange(len(best))
-    vec = c[rows, best]
-    length = np.sqrt(norms[rows, best])
-    ok = length > 0
-    vec[ok] /= length[ok, None]
-    vec[~ok] = 0.0
-    return lam_min, lam_mid, vec
-
-
 def correlated_depth_sigmas(
     sensor: DepthNoiseConfig, depth_m: float, area_m2: float, k: float = 1.0
 ) -> tuple[float, float]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from planeslam.frontend.cell_kernels import warm_up_cell_kernels
 from planeslam.frontend.fused import fma as _fma
 from planeslam.frontend.plane_kernels import warm_up_plane_kernels
 
@@ -158,194 +159,6 @@ def gather_planes_kernel(
                 xyz[2, k] = z[c, p]
                 at[i] = k + 1
     return xyz, bounds
-
-
-@njit(cache=True, nogil=True)
-def _rms2_to_plane(
-    scatter: np.ndarray, mean: np.ndarray, count: np.ndarray, c: int, normal: np.ndarray, d: float
-) -> float:
-    """Mean squared distance [m^2] of cell c's points (its moments) to the plane (normal, d)."""
-    quad = 0.0
-    for i in range(3):
-        for j in range(3):
-            quad += normal[i] * scatter[c, i, j] * normal[j]
-    off = normal[0] * mean[c, 0] + normal[1] * mean[c, 1] + normal[2] * mean[c, 2] + d
-    return quad / max(count[c], 1) + off * off
-
-
-@njit(cache=True, nogil=True)
-def _find(parent: np.ndarray, i: int) -> int:
-    while parent[i] != i:
-        parent[i] = parent[parent[i]]
-        i = parent[i]
-    return i
-
-
-@njit(cache=True, nogil=True)
-def _component_labels(parent: np.ndarray) -> np.ndarray:
-    """(N,) component label of each node of a union-find forest, numbered in the order of
-    each component's first node (as scipy's connected_components)."""
-    n = len(parent)
-    comp = np.full(n, -1, dtype=np.int64)
-    label_of_root = np.full(n, -1, dtype=np.int64)
-    labels = 0
-    for i in range(n):
-        root = _find(parent, i)
-        if label_of_root[root] < 0:
-            label_of_root[root] = labels
-            labels += 1
-        comp[i] = label_of_root[root]
-    return comp
-
-
-@njit(cache=True, nogil=True)
-def link_cells_kernel(
-    rows: int,
-    cols: int,
-    planar: np.ndarray,
-    normal: np.ndarray,
-    d: np.ndarray,
-    mean: np.ndarray,
-    scatter: np.ndarray,
-    count: np.ndarray,
-    sigma: np.ndarray,
-    tilt_var: np.ndarray,
-    min_angle_rad: float,
-    k2: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Links between 4-neighbour planar cells of a rows x cols grid that fit each other's
-    planes: normals within max(min_angle_rad, 3 sigma of both cells' tilt noise), at most
-    45 deg, and each cell's RMS distance to the other's plane within sqrt(k2) sigma.
-
-    Per-cell inputs (C,): planar, d, count, sigma [m], tilt_var [rad^2]; normal, mean
-    (C, 3); scatter (C, 3, 3). Returns (connected component per cell (C,), numbered in
-    the order of each component's first cell as scipy's connected_components does;
-    links per cell (C,))."""
-    n = rows * cols
-    parent = np.arange(n)
-    degree = np.zeros(n, dtype=np.int64)
-    quarter = np.pi / 4.0
-    for a in range(n):
-        if not planar[a]:
-            continue
-        r, c = a // cols, a % cols
-        for step in range(2):
-            if step == 0:
-                if c + 1 >= cols:
-                    continue
-                b = a + 1
-            else:
-                if r + 1 >= rows:
-                    continue
-                b = a + cols
-            if not planar[b]:
-                continue
-            angle = min(max(3.0 * np.sqrt(tilt_var[a] + tilt_var[b]), min_angle_rad), quarter)
-            dot = normal[a, 0] * normal[b, 0] + normal[a, 1] * normal[b, 1]
-            dot += normal[a, 2] * normal[b, 2]
-            if not dot >= np.cos(angle):
-                continue
-            if not _rms2_to_plane(scatter, mean, count, b, normal[a], d[a]) <= k2 * sigma[b] ** 2:
-                continue
-            if not _rms2_to_plane(scatter, mean, count, a, normal[b], d[b]) <= k2 * sigma[a] ** 2:
-                continue
-            degree[a] += 1
-            degree[b] += 1
-            ra, rb = _find(parent, a), _find(parent, b)
-            if ra != rb:
-                parent[max(ra, rb)] = min(ra, rb)
-    return _component_labels(parent), degree
-
-
-@njit(cache=True, nogil=True)
-def group_sums_kernel(
-    group: np.ndarray, count: np.ndarray, mean: np.ndarray, scatter: np.ndarray, n_groups: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Raw moments of cell groups: group (C,) index per cell (-1 for none), count (C,),
-    mean (C, 3) [m], scatter (C, 3, 3) [m^2] -> (points (G,), first moments (G, 3) [m],
-    second moments about the origin (G, 3, 3) [m^2]), float64, summed in cell order (as
-    numpy.bincount does)."""
-    total = np.zeros(n_groups)
-    first = np.zeros((n_groups, 3))
-    second = np.zeros((n_groups, 3, 3))
-    for c in range(len(group)):
-        g = group[c]
-        if g < 0:
-            continue
-        w = float(count[c])
-        total[g] += w
-        for i in range(3):
-            first[g, i] += w * mean[c, i]
-        for i in range(3):
-            for j in range(i, 3):
-                second[g, i, j] += scatter[c, i, j] + w * mean[c, i] * mean[c, j]
-    for g in range(n_groups):
-        for i in range(3):
-            for j in range(i):
-                second[g, i, j] = second[g, j, i]
-    return total, first, second
-
-
-@njit(cache=True, nogil=True)
-def dense_components_kernel(linked: np.ndarray) -> np.ndarray:
-    """Connected components of the undirected graph of an (N, N) bool matrix (an edge where
-    linked[i, j] or linked[j, i]) -> (N,) labels numbered in the order of each component's
-    first node (as scipy's connected_components)."""
-    n = linked.shape[0]
-    parent = np.arange(n)
-    for i in range(n):
-        for j in range(n):
-            if linked[i, j]:
-                ra, rb = _find(parent, i), _find(parent, j)
-                if ra != rb:
-                    parent[max(ra, rb)] = min(ra, rb)
-    return _component_labels(parent)
-
-
-@njit(cache=True, nogil=True)
-def flood_fill_kernel(fit: np.ndarray, rows: int, cols: int, seed: int) -> np.ndarray:
-    """Cells 4-connected to `seed` through `fit` (rows * cols,) bool (seed included, whatever
-    its own flag) -> their indices, ascending."""
-    n = rows * cols
-    seen = np.zeros(n, dtype=np.bool_)
-    stack = np.empty(n, dtype=np.int64)
-    seen[seed] = True
-    stack[0] = seed
-    top = 1
-    found = 1
-    while top > 0:
-        top -= 1
-        a = stack[top]
-        r, c = a // cols, a % cols
-        for k in range(4):
-            if k == 0:
-                if c == 0:
-                    continue
-                b = a - 1
-            elif k == 1:
-                if c + 1 >= cols:
-                    continue
-                b = a + 1
-            elif k == 2:
-                if r == 0:
-                    continue
-                b = a - cols
-            else:
-                if r + 1 >= rows:
-                    continue
-                b = a + cols
-            if fit[b] and not seen[b]:
-                seen[b] = True
-                stack[top] = b
-                top += 1
-                found += 1
-    out = np.empty(found, dtype=np.int64)
-    k = 0
-    for a in range(n):
-        if seen[a]:
-            out[k] = a
-            k += 1
-    return out
 
 
 @njit(cache=True, nogil=True)
@@ -652,13 +465,8 @@ def warm_up() -> None:
     labels, _ = assign_pixels_kernel(x, y, z, valid, cand, ncand, normals, ds, f32(1.0), f32(0.0))
     remap = np.array([-1, 0], np.int32)
     gather_planes_kernel(x, y, z, labels, np.ones(1, np.bool_), remap, 1)
-    planar = np.ones(n, np.bool_)
-    normal, mean, scatter = np.ones((n, 3)), np.ones((n, 3)), np.ones((n, 3, 3))
+    normal = np.ones((n, 3))
     count, vec = np.ones(n, np.int64), np.ones(n)
-    link_cells_kernel(1, n, planar, normal, vec, mean, scatter, count, vec, vec, 0.1, 1.0)
-    group_sums_kernel(np.zeros(n, np.int64), count, mean, scatter, 1)
-    dense_components_kernel(np.ones((n, n), np.bool_))
-    flood_fill_kernel(planar, 1, n, 0)
     points = np.ones((3, 2 * n))[:, :n].T  # a plane's points: a view of segmentation's buffer
     band_points_kernel(points, 1, normal, vec, normal, count, 0.02, 0.0)
     contact_counts_kernel(np.zeros((2 * n, 2 * n), np.int32)[::2, ::2], 1)
@@ -666,4 +474,5 @@ def warm_up() -> None:
     edge_extents_kernel(key, count - 1, key, key, flag, normal, vec, 1.0, 3, 1, 0.01, 0.0, 8)
     sampled_voxel_keys_kernel(np.ones((n, n, 3), f32), 2, np.eye(4), 0.01, 21)  # fused cloud
     warm_up_plane_kernels()
+    warm_up_cell_kernels()
     _WARM = True

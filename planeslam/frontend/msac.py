@@ -24,7 +24,7 @@ from planeslam.frontend.config import SegmentationConfig
 from planeslam.frontend.segment_common import (
     OUTLINE_STRIDE,
     PixelGrid,
-    build_plane,
+    build_planes,
     checked_cloud,
     empty_segmentation,
     finish,
@@ -197,22 +197,22 @@ def _segment_msac(
     remap = np.full(len(found_n) + 1, -1, dtype=np.int32)
     remap[order + 1] = np.arange(len(order), dtype=np.int32)
     labels = remap[labels + 1]
-    planes = []
     lab_small = labels[::OUTLINE_STRIDE, ::OUTLINE_STRIDE]
     boxes = ndimage.find_objects(lab_small + 1, max_label=len(order))
-    for new_id in range(len(order)):
-        pix = np.flatnonzero(labels == new_id)
-        xyz = np.stack([c.ravel()[pix] for c in (x, y, z)]).astype(np.float64)
-        plane = build_plane(
-            new_id,
-            xyz,
-            lab_small,
-            boxes[new_id],
-            grid,
-            cfg.outline_epsilon_px,
-            OUTLINE_STRIDE,
-            noise,
-        )
-        if plane is not None:
-            planes.append(plane)
+    # Inliers of all planes grouped by plane id (raster order within each), in one
+    # (3, N) float64 buffer; pixels on no plane (-1) sort first and are left out.
+    pix = np.argsort(labels.ravel(), kind="stable")
+    bounds = np.searchsorted(labels.ravel()[pix], np.arange(len(order) + 1))
+    pix = pix[bounds[0] :]
+    xyz = np.stack([c.ravel()[pix] for c in (x, y, z)]).astype(np.float64)
+    planes = build_planes(
+        xyz,
+        bounds - bounds[0],
+        lab_small,
+        boxes,
+        grid,
+        cfg.outline_epsilon_px,
+        OUTLINE_STRIDE,
+        noise,
+    )
     return finish(planes, labels)

@@ -57,22 +57,24 @@ import numpy as np
 from scipy import ndimage
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
-from planeslam.core.errors import GeometryError
-from planeslam.core.plane_fit import merge_moments, plane_from_moments, smallest_eigh3
+from planeslam.core.plane_fit import merge_moments, plane_from_moments
+from planeslam.frontend.cell_kernels import (
+    dense_components_kernel,
+    group_sums_kernel,
+    grow_regions_kernel,
+    link_cells_kernel,
+    smallest_eigh3_kernel,
+)
 from planeslam.frontend.config import SegmentationConfig
 from planeslam.frontend.kernels import (
     assign_pixels_kernel,
     cells_from_cloud_kernel,
-    dense_components_kernel,
-    flood_fill_kernel,
     gather_planes_kernel,
-    group_sums_kernel,
-    link_cells_kernel,
 )
 from planeslam.frontend.segment_common import (
     OUTLINE_STRIDE,
     PixelGrid,
-    build_plane,
+    build_planes,
     checked_cloud,
     empty_segmentation,
     finish,
@@ -236,10 +238,6 @@ def _cell_fits(x, y, z, valid, cfg: SegmentationConfig, noise: DepthNoiseConfig)
     usable = count >= cfg.organized.min_cell_valid_fraction * x.shape[1]
     n_safe = np.maximum(count, 1).astype(np.float32)
     mean32 = np.stack([x.sum(1), y.sum(1), z.sum(1)], axis=1) / n_safe[:, None]
-    # Centre before the products: float32 cannot hold x^2 sums to noise precision.
-    # Invalid pixels are (0, 0, 0), so each adds exactly mean_a * mean_b to the sum of
-    # products: subtract that instead of masking (exact for full cells, within a few
-    # % of the residual scatter for half-empty ones).
     dx = x - mean32[:, 0:1]
     dy = y - mean32[:, 1:2]
     dz = z - mean32[:, 2:3]
@@ -256,7 +254,7 @@ def _cell_fits(x, y, z, valid, cfg: SegmentationConfig, noise: DepthNoiseConfig)
         axis=1,
     )
     mean = mean32.astype(np.float64)
-    lam_min, lam_mid, normal = smallest_eigh3(scatter)
+    lam_min, lam_mid, normal = smallest_eigh3_kernel(scatter)
     d = -np.einsum("ij,ij->i", normal, mean)
     flip = d < 0
     normal[flip] *= -1.0
@@ -303,26 +301,6 @@ class _Region:
     d: float
 
 
-def _region_of(cells: _Cells, idx: np.ndarray) -> _Region | None:
-    count, centroid, scatter = merge_moments(cells.count[idx], cells.mean[idx], cells.scatter[idx])
-    try:
-        normal, d, _ = plane_from_moments(centroid, scatter)
-    except GeometryError:
-        return None
-    return _Region(idx, count, centroid, scatter, normal, d)
-
-
-def _fitting(
-    cells: _Cells, idx: np.ndarray, region: _Region, cfg: SegmentationConfig
-) -> np.ndarray:
-    """(K,) bool: cells `idx` fit the region's plane (RMS and angle tests)."""
-    rms2 = _rms2_to_plane(cells, idx, region.normal, np.float64(region.d))
-    cos_max = _cos_tolerance(cells.tilt_var[idx], cfg)
-    return (rms2 <= (cfg.organized.merge_max_rms_sigmas * cells.sigma[idx]) ** 2) & (
-        cells.normal[idx] @ region.normal >= cos_max
-    )
-
-
 def _link_cells(cells: _Cells, rows: int, cols: int, cfg: SegmentationConfig):
     """Links between 4-neighbour planar cells that fit each other's planes (normals within
     `_cos_tolerance`, each cell within merge_max_rms_sigmas of the other's plane).
@@ -354,32 +332,29 @@ def _grow_regions(
     cfg: SegmentationConfig,
 ) -> list[_Region]:
     """Seeded region growing inside the cells `member` (K,) (CAPE-style): a region grows
-    over the connected cells that fit its current plane, refit after each growth."""
-    remaining = np.zeros(rows * cols, dtype=bool)
-    remaining[member] = True
-    regions: list[_Region] = []
-    for _ in range(64):
-        cand = np.flatnonzero(remaining)
-        if cells.count[cand].sum() < min_px:
-            break
-        seed = int(cand[np.argmax(degree[cand])])
-        region = _region_of(cells, np.array([seed]))
-        grown = np.array([seed])
-        for _ in range(4):
-            if region is None:
-                break
-            fit = np.zeros(rows * cols, dtype=bool)
-            fit[cand] = _fitting(cells, cand, region, cfg)
-            fit[seed] = True
-            new = flood_fill_kernel(fit, rows, cols, seed)
-            if len(new) == len(grown):
-                break
-            grown = new
-            region = _region_of(cells, grown)
-        remaining[grown] = False
-        if region is not None and region.count >= min_px:
-            regions.append(region)
-    return regions
+    over the connected cells that fit its current plane, refit after each growth
+    (`cell_kernels.grow_regions_kernel`)."""
+    idx, bounds, count, centroid, scatter, normal, d = grow_regions_kernel(
+        member,
+        degree,
+        rows,
+        cols,
+        cells.count,
+        cells.mean,
+        cells.scatter,
+        cells.normal,
+        cells.sigma,
+        cells.tilt_var,
+        min_px,
+        math.radians(cfg.organized.merge_max_angle_deg),
+        float(cfg.organized.merge_max_rms_sigmas**2),
+    )
+    return [
+        _Region(
+            idx[bounds[i] : bounds[i + 1]], int(count[i]), centroid[i], scatter[i], normal[i], d[i]
+        )
+        for i in range(len(count))
+    ]
 
 
 def _group_planes(cells: _Cells, group: np.ndarray, n_groups: int):
@@ -393,7 +368,7 @@ def _group_planes(cells: _Cells, group: np.ndarray, n_groups: int):
     safe = np.maximum(count, 1.0)
     centroid = first / safe[:, None]
     scatter = second - safe[:, None, None] * centroid[:, :, None] * centroid[:, None, :]
-    _, _, normal = smallest_eigh3(scatter)
+    _, _, normal = smallest_eigh3_kernel(scatter)
     d = -np.einsum("gi,gi->g", normal, centroid)
     flip = d < 0
     normal[flip] *= -1.0
@@ -572,22 +547,16 @@ def _segment_organized(
     labels_img = grid.to_image(px.labels)
     lab_small = labels_img[::outline_stride, ::outline_stride]
     boxes = ndimage.find_objects(lab_small + 1, max_label=len(order))
-    planes = []
-    for new_id in range(len(order)):
-        a, b = bounds[new_id], bounds[new_id + 1]
-        box = boxes[new_id]
-        plane = build_plane(
-            new_id,
-            xyz[:, a:b],
-            lab_small,
-            box,
-            grid.pixels,
-            cfg.outline_epsilon_px,
-            outline_stride,
-            noise,
-        )
-        if plane is not None:
-            planes.append(plane)
+    planes = build_planes(
+        xyz,
+        bounds,
+        lab_small,
+        boxes,
+        grid.pixels,
+        cfg.outline_epsilon_px,
+        outline_stride,
+        noise,
+    )
     t5 = time.perf_counter()
     log.debug(
         "organized segmentation: cloud %.2f ms, cells %.2f ms, regions %.2f ms, "

@@ -18,6 +18,7 @@ formula about the new plane, and its centroid and scatter are moved to refit to 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -25,19 +26,24 @@ import numpy as np
 
 from planeslam.core.camera import CameraConfig, DepthNoiseConfig, PixelRays
 from planeslam.core.errors import ConfigError, GeometryError
-from planeslam.core.plane_fit import moments_of_columns, plane_covariance, plane_from_moments
+from planeslam.core.plane_fit import plane_covariance
 from planeslam.core.quantised_fit import (
     fit_quantised_plane,
     inverse_depth_residual_steps,
     quantisation_bias_m,
 )
-from planeslam.frontend.plane_kernels import inverse_depth_noise_kernel, outline_points_kernel
+from planeslam.frontend.plane_kernels import (
+    FIT_OK,
+    inverse_depth_noise_kernel,
+    outline_points_kernel,
+    plane_fits_kernel,
+)
 from planeslam.frontend.types import Plane, Segmentation
 
 log = logging.getLogger(__name__)
 
 DEFAULT_SENSOR = DepthNoiseConfig()
-"""The sensor `build_plane` assumes when its caller names none (its 1/z step)."""
+"""The sensor `build_planes` assumes when its caller names none (its 1/z step)."""
 
 OUTLINE_STRIDE = 3
 """Outlines are traced on every 3rd pixel of every 3rd row (full-image pixels)."""
@@ -138,55 +144,64 @@ def finish(planes: list[Plane], labels_img: np.ndarray) -> Segmentation:
     return Segmentation(planes=fixed, labels=remap[labels_img + 1])
 
 
-def build_plane(
-    plane_id: int,
+def build_planes(
     xyz: np.ndarray,
+    bounds: np.ndarray,
     labels_small: np.ndarray,
-    box: tuple[slice, slice] | None,
+    boxes: Sequence[tuple[slice, slice] | None],
     grid: PixelGrid,
     outline_epsilon_px: float,
     outline_stride: int = OUTLINE_STRIDE,
     sensor: DepthNoiseConfig = DEFAULT_SENSOR,
-) -> Plane | None:
-    """Refit a plane on its inliers `xyz` (3, K) float64 (rows contiguous) and derive
-    covariance, area, outline; `Plane.points` is the (K, 3) transposed view of `xyz`.
+) -> list[Plane]:
+    """The plane records of one frame: plane i's inliers are the columns
+    bounds[i]:bounds[i + 1] of xyz (3, N) float64 [m] (rows contiguous); each is refit
+    (all at once, `plane_fits_kernel`), given covariance, area and outline, and its
+    `Plane.points` is the (K, 3) transposed view of its columns.
 
-    `labels_small` is the label image strided by `outline_stride`, `box` the
-    (rows, cols) slices bounding the plane in it (None: not in it). `sensor` gives the
-    1/z quantisation step. None when the points are
-    degenerate (collinear)."""
-    try:
-        count, centroid, scatter = moments_of_columns(xyz[0], xyz[1], xyz[2])
-        normal, d, rss = plane_from_moments(centroid, scatter)
-        covariance = plane_covariance(normal, centroid, scatter, count, rss)
-        step = sensor.inverse_depth_step_per_m
-        if step > 0 and _rounding_could_bias(xyz, normal, d, centroid, covariance, step):
-            try:
-                normal, d, centroid, scatter, covariance = _quantised_refit(
-                    xyz, count, centroid, scatter, step
-                )
-            except GeometryError as exc:
-                log.debug("plane %d keeps its least-squares fit: %s", plane_id, exc)
-        outline = _outline(
-            plane_id, normal, d, labels_small, box, grid, outline_epsilon_px, outline_stride
-        )
-    except GeometryError as exc:
-        log.debug("plane %d skipped: %s", plane_id, exc)
-        return None
-    z = xyz[2]
-    area = float((z * z) @ z) / (grid.fx * grid.fy * d)
-    return Plane(
-        id=plane_id,
-        normal=normal,
-        d=d,
-        points=xyz.T,
-        centroid=centroid,
-        covariance=covariance,
-        scatter=scatter,
-        num_points=count,
-        area_m2=area,
-        outline=outline,
+    `labels_small` is the label image strided by `outline_stride`, `boxes[i]` the
+    (rows, cols) slices bounding plane i in it (None: not in it). `sensor` gives the
+    1/z quantisation step. Planes whose points are degenerate (fewer than 4, collinear)
+    are left out."""
+    bounds = np.asarray(bounds, dtype=np.int64)
+    count, centroid, scatter, normal, d, rss, covariance, cubes, status = plane_fits_kernel(
+        xyz, bounds
     )
+    step = sensor.inverse_depth_step_per_m
+    planes = []
+    for i in range(len(bounds) - 1):
+        if status[i] != FIT_OK:
+            log.debug("plane %d skipped: %d points, degenerate (status %d)", i, count[i], status[i])
+            continue
+        points = xyz[:, bounds[i] : bounds[i + 1]]
+        fit = (normal[i], float(d[i]), centroid[i], scatter[i], covariance[i])
+        if step > 0 and _rounding_could_bias(points, *fit[:3], covariance[i], step):
+            try:
+                fit = _quantised_refit(points, int(count[i]), centroid[i], scatter[i], step)
+            except GeometryError as exc:
+                log.debug("plane %d keeps its least-squares fit: %s", i, exc)
+        try:
+            outline = _outline(
+                i, fit[0], fit[1], labels_small, boxes[i], grid, outline_epsilon_px, outline_stride
+            )
+        except GeometryError as exc:
+            log.debug("plane %d skipped: %s", i, exc)
+            continue
+        planes.append(
+            Plane(
+                id=i,
+                normal=fit[0],
+                d=fit[1],
+                points=points.T,
+                centroid=fit[2],
+                covariance=fit[4],
+                scatter=fit[3],
+                num_points=int(count[i]),
+                area_m2=float(cubes[i]) / (grid.fx * grid.fy * fit[1]),
+                outline=outline,
+            )
+        )
+    return planes
 
 
 def _rounding_could_bias(
