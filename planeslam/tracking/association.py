@@ -30,6 +30,7 @@ from planeslam.core.geometry import (
     as_pose,
     clip_convex_polygon,
     convex_hull_2d,
+    cross,
     plane_basis,
     polygon_area,
 )
@@ -137,7 +138,7 @@ def _corner_planes(name: str, ids: np.ndarray, num_planes: int) -> np.ndarray:
 
 def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angle [rad] between unit vectors a (..., 3) and b (..., 3), broadcast; robust near 0, pi."""
-    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=-1), np.einsum("...i,...i->...", a, b))
+    return np.arctan2(np.linalg.norm(cross(a, b), axis=-1), np.einsum("...i,...i->...", a, b))
 
 
 # ----------------------------------------------------------------------------- planes

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from planeslam.core.geometry import axis_angle_rotation, tangent_basis
+from planeslam.core.geometry import axis_angle_rotation, cross, tangent_basis
 
 
 class Primitive(str, enum.Enum):
@@ -208,7 +208,7 @@ def _plane_system(T, terms: PlaneTerms, bases: np.ndarray, W: np.ndarray):
     e[:, :2] = np.einsum("nij,nj->ni", bases, m - terms.n_cam)
     e[:, 2] = terms.d_world + terms.n_world @ t - terms.d_cam
     J = np.zeros((len(terms), 3, 6))
-    J[:, :2, :3] = np.cross(bases, m[:, None, :])  # b . (m x w) = (b x m) . w
+    J[:, :2, :3] = cross(bases, m[:, None, :])  # b . (m x w) = (b x m) . w
     J[:, 2, 3:] = m
     return (W @ e[:, :, None])[:, :, 0], W @ J
 
@@ -241,7 +241,7 @@ def _line_system(T, terms: LineTerms, sigma: float):
     e = np.einsum("li,li->l", terms.u_world, p_w - terms.e_world)
     uR = terms.u_world @ R  # rows u^T R
     J = np.zeros((len(terms), 1, 6))
-    J[:, 0, :3] = np.cross(terms.p_cam, uR)  # -u^T R [p]x, as a row
+    J[:, 0, :3] = cross(terms.p_cam, uR)  # -u^T R [p]x, as a row
     J[:, 0, 3:] = uR
     return (e / sigma)[:, None], J / sigma
 

@@ -36,7 +36,13 @@ from typing import Literal, NamedTuple
 import numpy as np
 
 from planeslam.core.errors import GeometryError
-from planeslam.core.geometry import as_pose, axis_angle_rotation, rotation_between, skew
+from planeslam.core.geometry import (
+    as_pose,
+    axis_angle_rotation,
+    cross,
+    rotation_between,
+    skew,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -192,9 +198,9 @@ def _residuals(T, n_src, d_src, n_dst, d_dst, p_src, p_dst) -> dict[str, np.ndar
     """Per-correspondence residuals of T_dst_src, as RegistrationResult fields."""
     R, t = T[:3, :3], T[:3, 3]
     m = n_src @ R.T
-    cross = np.linalg.norm(np.cross(m, n_dst), axis=1)
+    sine = np.linalg.norm(cross(m, n_dst), axis=1)
     return {
-        "plane_angle_residual_rad": np.arctan2(cross, np.einsum("ij,ij->i", m, n_dst)),
+        "plane_angle_residual_rad": np.arctan2(sine, np.einsum("ij,ij->i", m, n_dst)),
         "plane_offset_residual_m": (d_src - m @ t) - d_dst,
         "point_residual_m": np.linalg.norm(p_src @ R.T + t - p_dst, axis=1),
     }
