@@ -5,7 +5,8 @@ time over a whole run timed as `planeslam bench speed` times it (fused_cloud_cpu
 map_merge_cpu.py); the modules that call `convex_hull_2d` (map_merge_cpu.py,
 hull_timing.py); the first frames of a sequence (`first_frames`: open3d_threads.py,
 tensor_odometry.py); the timing scripts' dataset (`timed_source`: fused_cloud_cpu.py,
-map_merge_cpu.py through `time_whole_run`, front_end_process.py)."""
+map_merge_cpu.py through `time_whole_run`, front_end_process.py, front_end_stages.py,
+front_end_diff.py, whole_system_threads.py)."""
 
 from __future__ import annotations
 

@@ -164,7 +164,7 @@ def build_planes(
     1/z quantisation step. Planes whose points are degenerate (fewer than 4, collinear)
     are left out."""
     bounds = np.asarray(bounds, dtype=np.int64)
-    count, centroid, scatter, normal, d, rss, covariance, cubes, status = plane_fits_kernel(
+    count, centroid, scatter, normal, d, _, covariance, cubes, status = plane_fits_kernel(
         xyz, bounds
     )
     step = sensor.inverse_depth_step_per_m
@@ -174,15 +174,23 @@ def build_planes(
             log.debug("plane %d skipped: %d points, degenerate (status %d)", i, count[i], status[i])
             continue
         points = xyz[:, bounds[i] : bounds[i + 1]]
-        fit = (normal[i], float(d[i]), centroid[i], scatter[i], covariance[i])
-        if step > 0 and _rounding_could_bias(points, *fit[:3], covariance[i], step):
+        n, offset, mean, spread, cov = (
+            normal[i],
+            float(d[i]),
+            centroid[i],
+            scatter[i],
+            covariance[i],
+        )
+        if step > 0 and _rounding_could_bias(points, n, offset, mean, cov, step):
             try:
-                fit = _quantised_refit(points, int(count[i]), centroid[i], scatter[i], step)
+                n, offset, mean, spread, cov = _quantised_refit(
+                    points, int(count[i]), mean, spread, step
+                )
             except GeometryError as exc:
                 log.debug("plane %d keeps its least-squares fit: %s", i, exc)
         try:
             outline = _outline(
-                i, fit[0], fit[1], labels_small, boxes[i], grid, outline_epsilon_px, outline_stride
+                i, n, offset, labels_small, boxes[i], grid, outline_epsilon_px, outline_stride
             )
         except GeometryError as exc:
             log.debug("plane %d skipped: %s", i, exc)
@@ -190,14 +198,14 @@ def build_planes(
         planes.append(
             Plane(
                 id=i,
-                normal=fit[0],
-                d=fit[1],
+                normal=n,
+                d=offset,
                 points=points.T,
-                centroid=fit[2],
-                covariance=fit[4],
-                scatter=fit[3],
+                centroid=mean,
+                covariance=cov,
+                scatter=spread,
                 num_points=int(count[i]),
-                area_m2=float(cubes[i]) / (grid.fx * grid.fy * fit[1]),
+                area_m2=float(cubes[i]) / (grid.fx * grid.fy * offset),
                 outline=outline,
             )
         )
