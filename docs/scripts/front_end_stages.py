@@ -24,6 +24,8 @@ from _run_probe import timed_source
 from planeslam.core.native_tuning import single_native_threads
 from planeslam.frontend.pipeline import STAGES, FrontEnd
 
+POOL = 300
+"""The timed frames are spread over this many first frames of the dataset."""
 SEGMENTATION_STEPS = ("cloud", "cells", "regions", "pixels", "planes")
 """The steps the organised segmentation's debug line times, in its order."""
 
@@ -42,7 +44,7 @@ class _StepTimes(logging.Handler):
 
 
 if __name__ == "__main__":
-    source = timed_source(sys.argv[:1] + sys.argv[1:2] + ["300"], 300)
+    source = timed_source([sys.argv[0], *sys.argv[1:2], str(POOL)], POOL)
     n = int(sys.argv[2]) if len(sys.argv) > 2 else 100
     rounds = int(sys.argv[3]) if len(sys.argv) > 3 else 3
     pick = np.linspace(0, len(source.indices) - 1, n).round().astype(int)

@@ -14,6 +14,8 @@ import math
 import numpy as np
 from numba import njit
 
+from planeslam.frontend.plane_kernels import plane_of_moments
+
 
 @njit(cache=True, nogil=True)
 def smallest_eigh3_kernel(scatter: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -281,12 +283,7 @@ def _region_plane(
                 merged[i, j] += scatter[c, i, j] + count[c] * (mean[c, i] - centroid[i]) * (
                     mean[c, j] - centroid[j]
                 )
-    eigval, eigvec = np.linalg.eigh(merged)
-    normal = np.ascontiguousarray(eigvec[:, 0])
-    d = -(normal[0] * centroid[0] + normal[1] * centroid[1] + normal[2] * centroid[2])
-    if d < 0:
-        normal, d = -normal, -d
-    ok = eigval[1] > 1e-12 * max(eigval[2], 1e-300)
+    ok, normal, d, _ = plane_of_moments(centroid, merged)
     return ok, total, centroid, merged, normal, d
 
 

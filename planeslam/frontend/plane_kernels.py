@@ -1,7 +1,8 @@
 """Compiled (numba) per-plane work of the segmentation's plane records
 (`segment_common.build_planes`): every plane's least-squares fit and covariance in one
-pass, the outline's vertices met with the plane, and the noise of 1/z about the plane for
-the rounding gate. Conventions as `kernels` (cache=True, no fast-math; `kernels.warm_up`
+pass (`plane_of_moments`, also the region growing's refit in `cell_kernels`), the
+outline's vertices met with the plane, and the noise of 1/z about the plane for the
+rounding gate. Conventions as `kernels` (cache=True, no fast-math; `kernels.warm_up`
 loads these too through `warm_up_plane_kernels`)."""
 
 from __future__ import annotations
@@ -34,6 +35,22 @@ def _tangent_basis(n0: float, n1: float, n2: float) -> np.ndarray:
     basis[1, 1] = n2 * b0 - n0 * b2
     basis[2, 1] = n0 * b1 - n1 * b0
     return basis
+
+
+@njit(cache=True, nogil=True)
+def plane_of_moments(
+    centroid: np.ndarray, scatter: np.ndarray
+) -> tuple[bool, np.ndarray, float, float]:
+    """`core.plane_fit.plane_from_moments`, compiled: the least-squares plane of points with
+    this centroid (3,) [m] and scatter (3, 3) [m^2] -> (ok: False when the points are
+    (nearly) collinear, unit normal toward the camera (3,), d [m], residual sum of squares
+    [m^2])."""
+    eigval, eigvec = np.linalg.eigh(scatter)
+    normal = np.ascontiguousarray(eigvec[:, 0])
+    d = -(normal[0] * centroid[0] + normal[1] * centroid[1] + normal[2] * centroid[2])
+    if d < 0:
+        normal, d = -normal, -d
+    return eigval[1] > 1e-12 * max(eigval[2], 1e-300), normal, d, max(eigval[0], 0.0)
 
 
 @njit(cache=True, nogil=True)
@@ -88,17 +105,12 @@ def plane_fits_kernel(xyz: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, 
         s[2, 0], s[2, 1], s[2, 2] = xz, yz, zz
         centroid[r, 0], centroid[r, 1], centroid[r, 2] = cx, cy, cz
         cubes[r] = z3
-        eigval, eigvec = np.linalg.eigh(s)
-        if not eigval[1] > 1e-12 * max(eigval[2], 1e-300):
+        ok, unit, offset, residual = plane_of_moments(centroid[r], s)
+        if not ok:
             status[r] = FIT_COLLINEAR
             continue
-        n0, n1, n2 = eigvec[0, 0], eigvec[1, 0], eigvec[2, 0]
-        offset = -(n0 * cx + n1 * cy + n2 * cz)
-        if offset < 0:
-            n0, n1, n2, offset = -n0, -n1, -n2, -offset
-        normal[r, 0], normal[r, 1], normal[r, 2] = n0, n1, n2
-        d[r] = offset
-        rss[r] = max(eigval[0], 0.0)
+        normal[r], d[r], rss[r] = unit, offset, residual
+        n0, n1, n2 = unit[0], unit[1], unit[2]
         # plane_covariance: (rss / (k - 3)) [[M^-1, -M^-1 u], [-u^T M^-1, 1/k + u^T M^-1 u]]
         basis = _tangent_basis(n0, n1, n2)
         m = basis.T @ s @ basis
@@ -181,7 +193,7 @@ def warm_up_plane_kernels() -> None:
     """Compile (or load from numba's cache) these kernels for the argument types
     `build_planes` passes, on tiny inputs (`kernels.warm_up` calls it)."""
     n = 2
-    plane_fits_kernel(np.ones((3, n)), np.array([0, n], np.int64))
+    plane_fits_kernel(np.ones((3, n)), np.array([0, n], np.int64))  # plane_of_moments too
     points = np.ones((3, 2 * n))[:, :n].T  # a plane's points: a view of segmentation's buffer
     # A plane's normal: an eigenvector (a column view of eigh's result) or a fresh array.
     poly, rays = np.ones((3, 2), np.int32), np.ones((n, n, 3))  # approxPolyDP's int32
