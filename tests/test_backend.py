@@ -275,6 +275,37 @@ def test_a_sliding_window_closes_the_loop_and_bounds_the_smoother(room_loop):
     assert set(planes_win) == set(planes_all)
 
 
+def test_the_last_batch_leaves_the_window_as_it_is_and_gives_the_same_estimates(
+    room_loop, monkeypatch
+):
+    """At a run's end (`optimize_batch(last=True)`, as the worker's finish calls it) the
+    windowed smoother is not restarted at the new estimate; what the backend then reports
+    is what the full call gives, bit for bit."""
+    scene, T_true, odometry, observations = room_loop
+    finals, restarts = {}, {}
+    for last in (False, True):
+        backend = Isam2Backend(dataclasses.replace(backend_config(), window_keyframes=6))
+        run_sequence(backend, scene, T_true, odometry, observations, associate=False)
+        restarts[last] = 0
+        slide = backend._slide_window
+
+        def counted(slide=slide, last=last):
+            restarts[last] += 1
+            slide()
+
+        monkeypatch.setattr(backend, "_slide_window", counted)
+        assert backend.optimize_batch(2, last=last) > 0
+        finals[last] = (backend.keyframe_poses(), backend.plane_estimates())
+    assert restarts == {False: 1, True: 0}
+    (poses, planes), (poses_last, planes_last) = finals[False], finals[True]
+    assert list(poses) == list(poses_last) and set(planes) == set(planes_last)
+    for i, (t, T) in poses.items():
+        assert poses_last[i][0] == t and np.array_equal(poses_last[i][1], T)
+    for j, plane in planes.items():
+        assert np.array_equal(planes_last[j].n_world, plane.n_world)
+        assert planes_last[j].d_world == plane.d_world
+
+
 @pytest.mark.parametrize("window", [0, 6])
 def test_a_loop_constraint_closes_the_loop(room_loop, window: int) -> None:
     """The loop's last ten keyframes see every plane as a new landmark (association missed

@@ -24,13 +24,12 @@ of freedom the planes fixed and which other kind filled the rest.
 from __future__ import annotations
 
 import enum
-import functools
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from planeslam.core.geometry import axis_angle_rotation, cross, tangent_basis
+from planeslam.core.geometry import tangent_basis
+from planeslam.tracking.estimator_kernels import gauss_newton_kernel
 
 
 class Primitive(str, enum.Enum):
@@ -199,20 +198,6 @@ def _plane_bases(terms: PlaneTerms) -> np.ndarray:
     return np.array([tangent_basis(n).T for n in terms.n_cam]).reshape(-1, 2, 3)
 
 
-def _plane_system(T, terms: PlaneTerms, bases: np.ndarray, W: np.ndarray):
-    """Whitened residuals (N, 3) and Jacobians (N, 3, 6) of the plane terms at T, with the
-    (N, 2, 3) tangent bases and (N, 3, 3) whiteners of `terms`."""
-    R, t = T[:3, :3], T[:3, 3]
-    m = terms.n_world @ R  # rows R^T n_w
-    e = np.empty((len(terms), 3))
-    e[:, :2] = np.einsum("nij,nj->ni", bases, m - terms.n_cam)
-    e[:, 2] = terms.d_world + terms.n_world @ t - terms.d_cam
-    J = np.zeros((len(terms), 3, 6))
-    J[:, :2, :3] = cross(bases, m[:, None, :])  # b . (m x w) = (b x m) . w
-    J[:, 2, 3:] = m
-    return (W @ e[:, :, None])[:, :, 0], W @ J
-
-
 def _point_whiteners(T, terms: PointTerms) -> np.ndarray:
     """(M, 3, 3) whiteners of point terms: observed plus map covariance, the latter turned
     into the camera frame by T's rotation (fixed for one estimate: it barely changes)."""
@@ -220,52 +205,11 @@ def _point_whiteners(T, terms: PointTerms) -> np.ndarray:
     return _whitener(terms.cov_cam + np.einsum("ji,njk,kl->nil", R, terms.cov_world, R))
 
 
-def _point_system(T, terms: PointTerms, W: np.ndarray):
-    """Whitened residuals (M, 3) and Jacobians (M, 3, 6) of point terms at T, with the
-    (M, 3, 3) whiteners W."""
-    R, t = T[:3, :3], T[:3, 3]
-    q = (terms.p_world - t) @ R  # rows R^T (p_w - t)
-    e = q - terms.p_cam
-    J = np.zeros((len(terms), 3, 6))
-    J[:, 0, 1], J[:, 0, 2] = -q[:, 2], q[:, 1]
-    J[:, 1, 0], J[:, 1, 2] = q[:, 2], -q[:, 0]
-    J[:, 2, 0], J[:, 2, 1] = -q[:, 1], q[:, 0]
-    J[:, :, 3:] = -np.eye(3)
-    return (W @ e[:, :, None])[:, :, 0], W @ J
-
-
-def _line_system(T, terms: LineTerms, sigma: float):
-    """Whitened residuals (L, 1) and Jacobians (L, 1, 6) of line-end terms at T."""
-    R, t = T[:3, :3], T[:3, 3]
-    p_w = terms.p_cam @ R.T + t
-    e = np.einsum("li,li->l", terms.u_world, p_w - terms.e_world)
-    uR = terms.u_world @ R  # rows u^T R
-    J = np.zeros((len(terms), 1, 6))
-    J[:, 0, :3] = cross(terms.p_cam, uR)  # -u^T R [p]x, as a row
-    J[:, 0, 3:] = uR
-    return (e / sigma)[:, None], J / sigma
-
-
 def _whitener(cov: np.ndarray) -> np.ndarray:
     """(..., 3, 3) W with W^T W = cov^-1 (upper Cholesky factor of the information)."""
     info = np.linalg.inv(cov)
     L = np.linalg.cholesky(0.5 * (info + np.swapaxes(info, -1, -2)))
     return np.swapaxes(L, -1, -2)
-
-
-def _weights(norm: np.ndarray, k: float, cut: float) -> np.ndarray:
-    """Per-term IRLS weight for whitened norms (...): Huber with threshold k, 0 beyond cut."""
-    return np.where(norm <= k, 1.0, k / np.maximum(norm, 1e-12)) * (norm <= cut)
-
-
-def _retract(T: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    w, v = xi[:3], xi[3:]
-    angle = float(np.linalg.norm(w))
-    dR = axis_angle_rotation(w / angle, angle) if angle > 1e-12 else np.eye(3)
-    out = T.copy()
-    out[:3, :3] = T[:3, :3] @ dR
-    out[:3, 3] = T[:3, 3] + T[:3, :3] @ v
-    return out
 
 
 # ----------------------------------------------------------------------------- solve
@@ -279,63 +223,71 @@ def estimate_pose(
     settings: EstimatorSettings,
 ) -> PoseEstimate:
     """Robust Gauss-Newton estimate of T_world_cam (4, 4) from T_init (4, 4) over every
-    term; a direction no term constrains keeps T_init's value (damped normal equations)."""
-    floor = np.diag([settings.plane_sigma_angle_rad**2] * 2 + [settings.plane_sigma_offset_m**2])
+    term; a direction no term constrains keeps T_init's value (damped normal equations).
+    The iterations run compiled (`estimator_kernels.gauss_newton_kernel`)."""
     T = np.array(T_init, dtype=np.float64)
-    systems: list[tuple[Primitive, Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]]] = []
-    if planes is not None and len(planes):
-        bases, W = _plane_bases(planes), _whitener(planes.covariance + floor)
-        systems.append((Primitive.PLANES, lambda X: _plane_system(X, planes, bases, W)))
-    for terms in points:
-        if len(terms):
-            W_p = _point_whiteners(T, terms)
-            systems.append((terms.kind, functools.partial(_point_system, terms=terms, W=W_p)))
-    if lines is not None and len(lines):
-        sigma = settings.line_sigma_m
-        systems.append((Primitive.LINES, lambda X: _line_system(X, lines, sigma)))
-    k = settings.huber_k
-    for it in range(1, settings.iterations + 1):
-        cut = np.inf if it <= settings.settle_iterations else settings.reject_k
-        H, g = _normal_equations(T, systems, k, cut)[:2]
-        scale = max(float(np.trace(H)), 1e-12)
-        xi = -np.linalg.solve(H + 1e-9 * scale * np.eye(6), g)
-        T = _retract(T, xi)
-        small = np.linalg.norm(xi[:3]) < 1e-7 and np.linalg.norm(xi[3:]) < 1e-7
-        if small and it > settings.settle_iterations:
-            break
-    _, _, info, inliers = _normal_equations(T, systems, k, settings.reject_k)
-    point_kinds = (Primitive.POINTS, Primitive.CORNERS)
-    by_kind = iter(mask for kind, mask in inliers if kind in point_kinds)
+    planes = planes if planes is not None else _NO_PLANES
+    floor = np.diag([settings.plane_sigma_angle_rad**2] * 2 + [settings.plane_sigma_offset_m**2])
+    bases, W = _plane_bases(planes), _whitener(planes.covariance.reshape(-1, 3, 3) + floor)
+    sets = [terms for terms in points if len(terms)]
+    sizes = [len(terms) for terms in sets]
+    p_cam, p_world, W_p = (
+        np.concatenate([_as_rows(terms.p_cam) for terms in sets] + [np.zeros((0, 3))]),
+        np.concatenate([_as_rows(terms.p_world) for terms in sets] + [np.zeros((0, 3))]),
+        np.concatenate([_point_whiteners(T, terms) for terms in sets] + [np.zeros((0, 3, 3))]),
+    )
+    lines = lines if lines is not None else _NO_LINES
+    T, information, inliers = gauss_newton_kernel(
+        T,
+        (
+            _as_rows(planes.n_cam),
+            _as_values(planes.d_cam),
+            _as_rows(planes.n_world),
+            _as_values(planes.d_world),
+            bases,
+            np.ascontiguousarray(W),
+        ),
+        (p_cam, p_world, np.ascontiguousarray(W_p), np.repeat(np.arange(len(sets)), sizes)),
+        len(sets),
+        (_as_rows(lines.p_cam), _as_rows(lines.u_world), _as_rows(lines.e_world)),
+        float(settings.line_sigma_m),
+        float(settings.huber_k),
+        float(settings.reject_k),
+        int(settings.settle_iterations),
+        int(settings.iterations),
+    )
+    # Systems in the kernel's order: planes, the point sets, lines; kinds summed.
+    info: dict[Primitive, np.ndarray] = {}
+    systems = [(Primitive.PLANES, len(planes))] + [(t.kind, len(t)) for t in sets]
+    for s, (kind, count) in enumerate([*systems, (Primitive.LINES, len(lines))]):
+        if count:
+            info[kind] = info.get(kind, np.zeros((6, 6))) + information[s]
+    n_planes, n_points = len(planes), len(p_cam)
+    per_set = iter(
+        np.split(inliers[n_planes : n_planes + n_points], np.cumsum(sizes, dtype=np.int64)[:-1])
+    )
     return PoseEstimate(
         T_world_cam=T,
         information=info,
-        plane_inliers=next(
-            (mask for kind, mask in inliers if kind is Primitive.PLANES), np.zeros(0, bool)
-        ),
-        point_inliers=[next(by_kind) if len(t) else np.zeros(0, bool) for t in points],
-        line_inliers=next(
-            (mask for kind, mask in inliers if kind is Primitive.LINES), np.zeros(0, bool)
-        ),
+        plane_inliers=inliers[:n_planes],
+        point_inliers=[next(per_set) if len(t) else np.zeros(0, bool) for t in points],
+        line_inliers=inliers[n_planes + n_points :],
     )
 
 
-def _normal_equations(T, systems, k: float, cut: float):
-    """H (6, 6), g (6,) of the robustly weighted terms at T, the information per
-    primitive, and per system its kind and inlier mask (within k sigmas)."""
-    H, g = np.zeros((6, 6)), np.zeros(6)
-    info: dict[Primitive, np.ndarray] = {}
-    inliers: list[tuple[Primitive, np.ndarray]] = []
-    for kind, system in systems:
-        e, J = system(T)
-        norm = np.sqrt(np.sum(e * e, axis=1))
-        root = np.sqrt(_weights(norm, k, cut))
-        Jw = (J * root[:, None, None]).reshape(-1, 6)
-        Hk = Jw.T @ Jw
-        H += Hk
-        g += Jw.T @ (e * root[:, None]).reshape(-1)
-        info[kind] = info.get(kind, np.zeros((6, 6))) + Hk
-        inliers.append((kind, norm <= k))
-    return H, g, info, inliers
+def _as_rows(a: np.ndarray) -> np.ndarray:
+    """(K, 3) contiguous float64 rows of `a` (the kernel is compiled for these types)."""
+    return np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1, 3))
+
+
+def _as_values(a: np.ndarray) -> np.ndarray:
+    """(K,) contiguous float64 values of `a`."""
+    return np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1))
+
+
+_NO_PLANES = PlaneTerms(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
+                        np.zeros((0, 3, 3)))  # fmt: skip
+_NO_LINES = LineTerms(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
 
 
 # ----------------------------------------------------------------------------- constraints
