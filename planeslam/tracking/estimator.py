@@ -285,8 +285,9 @@ def _as_values(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1))
 
 
-_NO_PLANES = PlaneTerms(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0),
-                        np.zeros((0, 3, 3)))  # fmt: skip
+_NO_PLANES = PlaneTerms(
+    np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3, 3))
+)
 _NO_LINES = LineTerms(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
 
 

@@ -49,6 +49,7 @@ def _add_term(
 
 @njit(cache=True, nogil=True)
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b for (3,) vectors."""
     return np.array(
         [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
     )
@@ -163,11 +164,11 @@ def _normal_equations(
         system = 1 + point_set[i]
         inliers[row] = _add_term(info[system, :, :6], info[system, :, 6], e, J, point_W[i], k, cut)
         row += 1
-    lines = info.shape[0] - 1
+    last = info.shape[0] - 1  # the line ends' system
     W1 = np.full((1, 1), 1.0 / line_sigma)
     for i in range(line_p_cam.shape[0]):
         e, J = line_term(R, t, line_p_cam[i], line_u_world[i], line_e_world[i])
-        inliers[row] = _add_term(info[lines, :, :6], info[lines, :, 6], e, J, W1, k, cut)
+        inliers[row] = _add_term(info[last, :, :6], info[last, :, 6], e, J, W1, k, cut)
         row += 1
 
 
