@@ -21,8 +21,14 @@ from planeslam.tracking.estimator import (
     constraints,
     estimate_pose,
     fully_constrained,
+    warm_up,
 )
-from planeslam.tracking.estimator_kernels import line_term, plane_term, point_term
+from planeslam.tracking.estimator_kernels import (
+    gauss_newton_kernel,
+    line_term,
+    plane_term,
+    point_term,
+)
 from planeslam.tracking.estimator_kernels import retract as _retract
 
 pytestmark = pytest.mark.unit
@@ -168,3 +174,23 @@ def test_outlier_points_do_not_move_the_pose(rng: np.random.Generator) -> None:
     )
     assert_pose_close(est.T_world_cam, T_TRUE, 0.005, 0.3)
     assert not est.point_inliers[0][bad].any()
+
+
+def test_every_estimate_uses_one_compiled_signature(rng: np.random.Generator) -> None:
+    """`estimate_pose` hands the kernel the same argument types whatever it is given (no
+    terms, strided or float32 arrays, several point sets, line ends), so the kernel that
+    `warm_up` compiles at start-up is the only one: no compilation mid-run."""
+    warm_up()
+    planes = planes_seen(T_TRUE, ROOM_N, ROOM_D)
+    strided = PlaneTerms(
+        np.asfortranarray(planes.n_cam),
+        planes.d_cam.astype(np.float32),
+        planes.n_world[::1],
+        list(planes.d_world),
+        np.full((len(ROOM_D), 3, 3), 1e-4 * np.eye(3)),
+    )
+    points = points_seen(T_TRUE, rng.uniform(-1, 1, (6, 3)) + [0, 0, 3])
+    lines = LineTerms(*(rng.normal(size=(6, 3))[::2] for _ in range(3)))
+    for terms in ((None, [], None), (strided, [points, points], lines), (None, [points], None)):
+        estimate_pose(T_TRUE, *terms, EstimatorSettings())
+    assert len(gauss_newton_kernel.signatures) == 1, gauss_newton_kernel.signatures

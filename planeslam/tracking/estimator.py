@@ -275,6 +275,14 @@ def estimate_pose(
     )
 
 
+def warm_up() -> None:
+    """Compile (or load from numba's cache) `estimate_pose`'s kernel, for the argument
+    types it always passes, on an empty problem: at start-up, where an interrupt waits
+    (`app.runner`), rather than inside the first estimate (about 15 s the first time on a
+    machine, then well under a second)."""
+    estimate_pose(np.eye(4), None, [], None, EstimatorSettings())
+
+
 def _as_rows(a: np.ndarray) -> np.ndarray:
     """(K, 3) contiguous float64 rows of `a` (the kernel is compiled for these types)."""
     return np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1, 3))

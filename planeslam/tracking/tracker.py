@@ -50,6 +50,7 @@ from planeslam.tracking.association import Association
 from planeslam.tracking.config import TrackingConfig
 from planeslam.tracking.dense import ColourCheck, DenseFallback, RgbdPair, parallel_share
 from planeslam.tracking.estimator import PoseConstraints, Primitive
+from planeslam.tracking.estimator import warm_up as warm_up_estimator
 from planeslam.tracking.joint import JointEstimator, JointSolve, estimator_settings
 from planeslam.tracking.keypoints import (
     NO_KEYPOINTS,
@@ -110,6 +111,7 @@ class Tracker:
             detector = KeypointDetector(camera, self.sensor, config.points)
             self.keypoint_map = KeypointMap(detector, every_keyframe_keypoints)
         self.settings, self.refine_settings, self.thresholds = estimator_settings(config)
+        warm_up_estimator()
         self.planes = PlanePath(config, self.thresholds)
         self.joint = JointEstimator(
             config, self.sensor, self.planes, self.settings, self.thresholds, self.rng
