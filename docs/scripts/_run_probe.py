@@ -106,18 +106,22 @@ def thread_cpu(
     spent: dict[str, float],
     figure: str,
     calls: dict[str, int] | None = None,
+    wall: dict[str, float] | None = None,
 ):
     """`function` wrapped to add the CPU time of its calling thread (`time.thread_time`)
-    to spent[figure] [s] and, with `calls`, 1 to calls[figure] per call."""
+    to spent[figure] [s], with `calls` 1 to calls[figure] per call, and with `wall` its
+    wall-clock time to wall[figure] [s]."""
 
     def wrapper(*args, **kwargs):
-        start = time.thread_time()
+        start, start_wall = time.thread_time(), time.perf_counter()
         try:
             return function(*args, **kwargs)
         finally:
             spent[figure] += time.thread_time() - start
             if calls is not None:
                 calls[figure] += 1
+            if wall is not None:
+                wall[figure] += time.perf_counter() - start_wall
 
     return wrapper
 

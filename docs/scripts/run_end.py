@@ -16,7 +16,7 @@ import collections
 import sys
 import time
 
-from _run_probe import timed_source
+from _run_probe import thread_cpu, timed_source
 
 from planeslam.backend.worker import Isam2Worker
 from planeslam.slam import run_frames, slam_for_dataset
@@ -25,20 +25,6 @@ from planeslam.slam.system import SLAM
 
 WALL: collections.Counter[str] = collections.Counter()
 CPU: collections.Counter[str] = collections.Counter()
-
-
-def timed(function, figure: str):
-    """`function` wrapped to add its wall and calling-thread CPU seconds to the figure."""
-
-    def wrapper(*args, **kwargs):
-        wall, cpu = time.perf_counter(), time.thread_time()
-        try:
-            return function(*args, **kwargs)
-        finally:
-            WALL[figure] += time.perf_counter() - wall
-            CPU[figure] += time.thread_time() - cpu
-
-    return wrapper
 
 
 if __name__ == "__main__":
@@ -50,7 +36,7 @@ if __name__ == "__main__":
         (AnchoredPoses, "reestimate", "re-estimation"),
     )
     for cls, name, label in parts:
-        setattr(cls, name, timed(getattr(cls, name), label))
+        setattr(cls, name, thread_cpu(getattr(cls, name), CPU, label, wall=WALL))
     source = timed_source(sys.argv[:3], 300)
     for r in range(rounds):
         WALL.clear()

@@ -13,11 +13,12 @@ of the backend worker process.
 
 from __future__ import annotations
 
+import collections
 import os
 import sys
 import time
 
-from _run_probe import timed_source
+from _run_probe import thread_cpu, timed_source
 
 from planeslam.slam import run_frames, slam_for_dataset
 from planeslam.slam.system import SLAM
@@ -26,16 +27,11 @@ if __name__ == "__main__":
     if len(sys.argv) > 3:
         sys.setswitchinterval(float(sys.argv[3]))
     source = timed_source(sys.argv[:3], 300)
-    finish: dict[str, float] = {}
-    original_finish = SLAM.finish
-
-    def timed_finish(self: SLAM) -> float:
-        t0, c0 = time.perf_counter(), time.thread_time()
-        result = original_finish(self)
-        finish["wall"], finish["cpu"] = time.perf_counter() - t0, time.thread_time() - c0
-        return result
-
-    SLAM.finish = timed_finish  # type: ignore[method-assign]
+    finish_cpu: collections.Counter[str] = collections.Counter()
+    finish_wall: collections.Counter[str] = collections.Counter()
+    SLAM.finish = thread_cpu(  # type: ignore[method-assign]
+        SLAM.finish, finish_cpu, "finish", wall=finish_wall
+    )
     children0 = os.times()
     slam = slam_for_dataset(source.config, source.dataset, source.indices[0])
     with slam:
@@ -48,6 +44,7 @@ if __name__ == "__main__":
     n = summary.frames
     print(
         f"wall {1e3 * (w1 - w0) / n:.1f} ms/frame (of which SLAM.finish "
-        f"{1e3 * finish['wall'] / n:.1f}); CPU ms/frame: main thread {1e3 * (t1 - t0) / n:.1f}, "
+        f"{1e3 * finish_wall['finish'] / n:.1f}); CPU ms/frame: main thread "
+        f"{1e3 * (t1 - t0) / n:.1f}, "
         f"other threads {1e3 * ((p1 - p0) - (t1 - t0)) / n:.1f}, worker {1e3 * worker / n:.1f}"
     )
